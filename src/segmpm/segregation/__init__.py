@@ -1,0 +1,21 @@
+"""Species transport of the binary mixture: extra Eulerian concentration grid and closures.
+
+The compiled kernel :func:`concentration_step` (grid.py) is called by the engine's time loop once
+per subcycle; :mod:`closures` holds the flux closures and the parameter vector layout;
+:mod:`reference` is a plain NumPy twin of the kernel; :mod:`diagnostics` has the NumPy measures
+used between output chunks. Model and numerics: docs/segregation.md.
+"""
+
+from segmpm.segregation.closures import MODEL_CODES, N_PARAMS, make_params, pack_params
+from segmpm.segregation.grid import ConcGrid, allocate_work, concentration_step, make_conc_grid
+
+__all__ = [
+    "MODEL_CODES",
+    "N_PARAMS",
+    "ConcGrid",
+    "allocate_work",
+    "concentration_step",
+    "make_conc_grid",
+    "make_params",
+    "pack_params",
+]
