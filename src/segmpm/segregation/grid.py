@@ -104,7 +104,9 @@ def allocate_work(cg: ConcGrid) -> tuple[np.ndarray, ...]:
 
 
 @njit(cache=True)
-def tent_weights(x: float, x0: float, hc: float, n: int, periodic: int) -> tuple[int, int, float, float]:
+def tent_weights(
+    x: float, x0: float, hc: float, n: int, periodic: int
+) -> tuple[int, int, float, float]:
     """Linear (tent) weights of position x to the two nearest cell centres x0 + (i + ½) h_c.
 
     Returns (i0, i1, w0, w1) with w0 + w1 = 1. Periodic: indices wrap. Closed: a position outside

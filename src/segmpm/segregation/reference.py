@@ -12,7 +12,6 @@ state logit φ = G(y) − G₀ with G = ∫ w/D dy, i.e. (4.3) for the seed mode
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import numpy as np
 from scipy.optimize import brentq
@@ -286,9 +285,7 @@ def shock_positions(q: float, phi0: float, depth: float, t: float) -> tuple[floa
     return q * phi0 * t, depth - q * (1.0 - phi0) * t
 
 
-def steady_logit_profile(
-    g_of_y: np.ndarray, weights: np.ndarray, phi_mean: float
-) -> np.ndarray:
+def steady_logit_profile(g_of_y: np.ndarray, weights: np.ndarray, phi_mean: float) -> np.ndarray:
     """Zero-flux steady state logit φ = G(y) − G₀ (physics.md (4.3)), at given points.
 
     ``g_of_y`` holds G(y) = ∫ w/D dy at the points (for the seed model G = −b^{k,s} S/(ρ η)),
@@ -324,6 +321,3 @@ def logistic_width_fit(
 
     popt, _ = curve_fit(model, y, phi, p0=guess, maxfev=20000)
     return float(popt[0]), float(abs(popt[1]))
-
-
-SteadyFn = Callable[[np.ndarray], np.ndarray]
