@@ -65,7 +65,8 @@ W_AY = 9  #: rate a of the y-face between (i, j) and (i, j+1)
 W_BY = 10  #: rate b of that y-face
 W_THETA = 11  #: fill fraction θ_c
 W_DIV = 12  #: net outflow Σ_faces F of a substep
-N_WORK = 13
+W_ACT = 13  #: 1.0 where the cell is active (raw fill θ ≥ θ_min), else 0.0
+N_WORK = 14
 
 
 def make_conc_grid(
@@ -139,6 +140,32 @@ def tent_weights(
 
 
 @njit(cache=True)
+def mp_weights(x: float, y: float, cg: ConcGrid, act: np.ndarray):
+    """Cells (i0, i1, j0, j1) and weights (w00, w01, w10, w11) of a material point.
+
+    Bilinear tent weights, restricted to the active cells and renormalised to sum to one, so that a
+    point next to an inactive (empty, ghost or partly filled) cell follows its active neighbours
+    fully instead of being damped by a cell whose φ_c never changes. A point with no active cell
+    keeps its raw weights (it exchanges nothing). The same weights serve steps (i) and (k), which
+    is what makes the mapping conservative.
+    """
+    i0, i1, wx0, wx1 = tent_weights(x, cg.x0, cg.hc, cg.ncx, cg.periodic_x)
+    j0, j1, wy0, wy1 = tent_weights(y, cg.y0, cg.hc, cg.ncy, 0)
+    w00 = wx0 * wy0
+    w01 = wx0 * wy1
+    w10 = wx1 * wy0
+    w11 = wx1 * wy1
+    a00 = w00 * act[i0, j0]
+    a01 = w01 * act[i0, j1]
+    a10 = w10 * act[i1, j0]
+    a11 = w11 * act[i1, j1]
+    tot = a00 + a01 + a10 + a11
+    if tot > 0.0:
+        return i0, i1, j0, j1, a00 / tot, a01 / tot, a10 / tot, a11 / tot
+    return i0, i1, j0, j1, w00, w01, w10, w11
+
+
+@njit(cache=True)
 def concentration_step(px, py, vol0, phi, s_int, gdot_int, t_int, cg, prm, work) -> int:
     """Advance φ^s_p over a subcycle of length t_int (s); return the number of FV substeps taken.
 
@@ -173,32 +200,50 @@ def concentration_step(px, py, vol0, phi, s_int, gdot_int, t_int, cg, prm, work)
     div = work[W_DIV]
 
     # ---- (i) MP → grid ----------------------------------------------------------------------
+    area = hc * hc
+    fill_min = prm[P_FILL_MIN]
+    act = work[W_ACT]
+    # pass 1: raw tent-weight fill θ_c decides which cells are active
     for i in range(ncx):
         for j in range(ncy):
+            vol[i, j] = 0.0
+            act[i, j] = 1.0
+    for p in range(npart):
+        i0, i1, j0, j1, w00, w01, w10, w11 = mp_weights(px[p], py[p], cg, act)
+        v = vol0[p]
+        vol[i0, j0] += w00 * v
+        vol[i0, j1] += w01 * v
+        vol[i1, j0] += w10 * v
+        vol[i1, j1] += w11 * v
+    for i in range(ncx):
+        for j in range(ncy):
+            act[i, j] = 1.0 if vol[i, j] >= fill_min * area else 0.0
             vol[i, j] = 0.0
             sum_s[i, j] = 0.0
             sum_l[i, j] = 0.0
             sc[i, j] = 0.0
             gc[i, j] = 0.0
+    # pass 2: weights restricted to the active cells (mp_weights), the ones step (k) uses
     for p in range(npart):
-        i0, i1, wx0, wx1 = tent_weights(px[p], cg.x0, hc, ncx, per)
-        j0, j1, wy0, wy1 = tent_weights(py[p], cg.y0, hc, ncy, 0)
+        i0, i1, j0, j1, w00, w01, w10, w11 = mp_weights(px[p], py[p], cg, act)
         v = vol0[p]
         f = phi[p]
         sp = s_int[p]
         gp = gdot_int[p]
-        for a in range(2):
-            ii = i0 if a == 0 else i1
-            wa = wx0 if a == 0 else wx1
-            for b in range(2):
-                jj = j0 if b == 0 else j1
-                wv = wa * (wy0 if b == 0 else wy1) * v
-                vol[ii, jj] += wv
-                sum_s[ii, jj] += wv * f
-                sum_l[ii, jj] += wv * (1.0 - f)
-                sc[ii, jj] += wv * sp
-                gc[ii, jj] += wv * gp
-    area = hc * hc
+        for c in range(4):
+            if c == 0:
+                ii, jj, wv = i0, j0, w00 * v
+            elif c == 1:
+                ii, jj, wv = i0, j1, w01 * v
+            elif c == 2:
+                ii, jj, wv = i1, j0, w10 * v
+            else:
+                ii, jj, wv = i1, j1, w11 * v
+            vol[ii, jj] += wv
+            sum_s[ii, jj] += wv * f
+            sum_l[ii, jj] += wv * (1.0 - f)
+            sc[ii, jj] += wv * sp
+            gc[ii, jj] += wv * gp
     for i in range(ncx):
         for j in range(ncy):
             vc = vol[i, j]
@@ -213,7 +258,6 @@ def concentration_step(px, py, vol0, phi, s_int, gdot_int, t_int, cg, prm, work)
             theta[i, j] = vc / area
 
     # ---- (j) face coefficients, frozen over the subcycle ------------------------------------
-    fill_min = prm[P_FILL_MIN]
     flux_kind = int(prm[P_FLUX])
     d_s = prm[P_D_SMALL]
     d_l = prm[P_D_LARGE]
@@ -222,11 +266,11 @@ def concentration_step(px, py, vol0, phi, s_int, gdot_int, t_int, cg, prm, work)
         if ib == ncx:
             ib = 0 if per == 1 else -1
         for j in range(ncy):
-            active = theta[i, j] >= fill_min
+            active = act[i, j] > 0.0
             # x-face (i, j) | (ib, j)
             ax[i, j] = 0.0
             bx[i, j] = 0.0
-            if active and ib >= 0 and ib != i and theta[ib, j] >= fill_min:
+            if active and ib >= 0 and ib != i and act[ib, j] > 0.0:
                 da = d_s * phic[i, j] + d_l * (1.0 - phic[i, j])
                 db = d_s * phic[ib, j] + d_l * (1.0 - phic[ib, j])
                 w, d = face_velocity_diffusivity(
@@ -236,7 +280,7 @@ def concentration_step(px, py, vol0, phi, s_int, gdot_int, t_int, cg, prm, work)
             # y-face (i, j) | (i, j+1)
             ay[i, j] = 0.0
             by[i, j] = 0.0
-            if active and j + 1 < ncy and theta[i, j + 1] >= fill_min:
+            if active and j + 1 < ncy and act[i, j + 1] > 0.0:
                 da = d_s * phic[i, j] + d_l * (1.0 - phic[i, j])
                 db = d_s * phic[i, j + 1] + d_l * (1.0 - phic[i, j + 1])
                 w, d = face_velocity_diffusivity(
@@ -252,7 +296,7 @@ def concentration_step(px, py, vol0, phi, s_int, gdot_int, t_int, cg, prm, work)
         if im < 0:
             im = ncx - 1 if per == 1 else -1
         for j in range(ncy):
-            if theta[i, j] < fill_min:
+            if act[i, j] == 0.0:
                 continue
             r = max(ax[i, j], bx[i, j]) + max(ay[i, j], by[i, j])
             if im >= 0:
@@ -307,25 +351,26 @@ def concentration_step(px, py, vol0, phi, s_int, gdot_int, t_int, cg, prm, work)
                 # Δφ_c, reusing the divergence array
                 div[i, j] = phic[i, j] - phi0[i, j]
         for p in range(npart):
-            i0, i1, wx0, wx1 = tent_weights(px[p], cg.x0, hc, ncx, per)
-            j0, j1, wy0, wy1 = tent_weights(py[p], cg.y0, hc, ncy, 0)
+            i0, i1, j0, j1, w00, w01, w10, w11 = mp_weights(px[p], py[p], cg, act)
             f = phi[p]
             dphi = 0.0
-            for a in range(2):
-                ii = i0 if a == 0 else i1
-                wa = wx0 if a == 0 else wx1
-                for b in range(2):
-                    jj = j0 if b == 0 else j1
-                    dc = div[ii, jj]
-                    if dc > 0.0:
-                        # ω = (1 − φ_p)/(1 − φ_c) with 1 − φ_c = Σ w V⁰ (1 − φ)/V_c
-                        if sum_l[ii, jj] > 0.0:
-                            wt = wa * (wy0 if b == 0 else wy1)
-                            dphi += wt * dc * (1.0 - f) * vol[ii, jj] / sum_l[ii, jj]
-                    elif dc < 0.0:
-                        if sum_s[ii, jj] > 0.0:
-                            wt = wa * (wy0 if b == 0 else wy1)
-                            dphi += wt * dc * f * vol[ii, jj] / sum_s[ii, jj]
+            for c in range(4):
+                if c == 0:
+                    ii, jj, wt = i0, j0, w00
+                elif c == 1:
+                    ii, jj, wt = i0, j1, w01
+                elif c == 2:
+                    ii, jj, wt = i1, j0, w10
+                else:
+                    ii, jj, wt = i1, j1, w11
+                dc = div[ii, jj]
+                # ω = (1 − φ_p)/(1 − φ_c) with 1 − φ_c = Σ w V⁰ (1 − φ)/V_c, or φ_p/φ_c
+                if dc > 0.0:
+                    if sum_l[ii, jj] > 0.0:
+                        dphi += wt * dc * (1.0 - f) * vol[ii, jj] / sum_l[ii, jj]
+                elif dc < 0.0:
+                    if sum_s[ii, jj] > 0.0:
+                        dphi += wt * dc * f * vol[ii, jj] / sum_s[ii, jj]
             f += dphi
             # exact arithmetic keeps f in [0, 1]; the clamp only removes round-off
             phi[p] = min(1.0, max(0.0, f))

@@ -153,14 +153,24 @@ def concentration_step_ref(
     ncell = ncx * ncy
     i0, i1, wx0, wx1 = tent_weights_np(px, cg.x0, hc, ncx, per)
     j0, j1, wy0, wy1 = tent_weights_np(py, cg.y0, hc, ncy, 0)
-    combos = [
-        (i0 * ncy + j0, wx0 * wy0),
-        (i0 * ncy + j1, wx0 * wy1),
-        (i1 * ncy + j0, wx1 * wy0),
-        (i1 * ncy + j1, wx1 * wy1),
-    ]
+    cells = [i0 * ncy + j0, i0 * ncy + j1, i1 * ncy + j0, i1 * ncy + j1]
+    raw = [wx0 * wy0, wx0 * wy1, wx1 * wy0, wx1 * wy1]
 
-    # (i) MP → grid
+    # (i) MP → grid. Pass 1: the raw fill decides activity; pass 2: weights restricted to the
+    # active cells and renormalised (grid.mp_weights).
+    vol_raw = np.zeros(ncell)
+    for idx, w in zip(cells, [r / (raw[0] + raw[1] + raw[2] + raw[3]) for r in raw], strict=True):
+        vol_raw += np.bincount(idx, weights=w * vol0, minlength=ncell)
+    act = vol_raw >= prm[P_FILL_MIN] * hc * hc
+    masked = [w * act[idx] for idx, w in zip(cells, raw, strict=True)]
+    tot = masked[0] + masked[1] + masked[2] + masked[3]
+    has = tot > 0.0
+    weights = [
+        np.where(has, m / np.where(has, tot, 1.0), w) for m, w in zip(masked, raw, strict=True)
+    ]
+    combos = list(zip(cells, weights, strict=True))
+    act = act.reshape(ncx, ncy)
+
     def scatter(q: np.ndarray) -> np.ndarray:
         out = np.zeros(ncell)
         for idx, w in combos:
@@ -180,10 +190,8 @@ def concentration_step_ref(
     phi0 = phic.copy()
 
     # (j) frozen face coefficients
-    fill_min = prm[P_FILL_MIN]
     flux_kind = int(prm[P_FLUX])
     dbar = prm[P_D_SMALL] * phic + prm[P_D_LARGE] * (1.0 - phic)
-    act = theta >= fill_min
     # x-faces (i, j) | (i+1, j)
     r = lambda q: np.roll(q, -1, axis=0)  # noqa: E731  (neighbour in +x, wrapped)
     w, d = face_velocity_diffusivity_np(prm, sc, r(sc), gc, r(gc), dbar, r(dbar), hc, 0)
