@@ -1,0 +1,25 @@
+"""segmpm — material point method for dense granular flow with size segregation.
+
+Python API::
+
+    import segmpm
+    cfg = segmpm.load_config("examples/chute_seed.toml", overrides=["time.end=0.5"])
+    sim = segmpm.Simulation(cfg, out_dir="out")
+    result = sim.run()
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+from .config import Config, ConfigError, load_config
+
+__all__ = ["Config", "ConfigError", "Simulation", "load_config", "__version__"]
+
+
+def __getattr__(name: str):
+    if name == "Simulation":
+        from .simulation import Simulation
+
+        return Simulation
+    raise AttributeError(name)

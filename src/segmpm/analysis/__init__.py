@@ -1,0 +1,1 @@
+"""Post-processing: depth profiles, comparison with references, segregation diagnostics."""

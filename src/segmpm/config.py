@@ -1,0 +1,492 @@
+"""Configuration of a run: pydantic schema, TOML loading, ``--set`` overrides.
+
+Every key lives in one of the sections of ``shared/spec/interface.md``: ``scenario``, ``geometry``,
+``grid``, ``material``, ``mixture``, ``segregation``, ``boundary``, ``time``, ``output``.
+All quantities are SI. Unknown keys are rejected. The built-in default is the seed's chute case
+(Fei, Sun, Hill & Zhou 2017, §4) with the reduced-cost preset documented in the README.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+
+#: Largest number of material points a run may allocate (memory guard, ~1 kB each with grids).
+MAX_PARTICLES = 20_000_000
+#: Largest number of background-grid nodes.
+MAX_NODES = 50_000_000
+
+
+class ConfigError(ValueError):
+    """Invalid configuration. ``str(err)`` is a one-paragraph message naming key, value and range."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class ScenarioConfig(_Section):
+    """What is simulated; each kind builds its particles and boundaries from the other sections."""
+
+    kind: Literal["chute", "collapse", "bar", "box"] = "chute"
+    #: Seed of the random generator (used only by scenarios that jitter points; runs stay reproducible).
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
+    #: bar: initial velocity amplitude v0 of the first mode, m/s; box: uniform velocity (x), m/s.
+    velocity: Annotated[float, Field(ge=-1e3, le=1e3, allow_inf_nan=False)] = 1e-3
+
+
+class GeometryConfig(_Section):
+    """Domain geometry. Chute: periodic strip ``length`` × ``depth`` on a slope (physics.md §0)."""
+
+    #: incline angle θ, degrees (the slope frame: x downslope, y normal to the base).
+    slope_deg: Annotated[float, Field(ge=0, lt=90, allow_inf_nan=False)] = 26.0
+    #: initial layer depth H normal to the base, m (chute, box, bar thickness).
+    depth: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 0.0373
+    #: channel width W between the sidewalls, m (only enters the sidewall friction).
+    width: Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)] = 0.022
+    #: periodic length L_x (chute, box) or bar length, or domain length (collapse), m.
+    length: Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)] = 0.012
+    #: collapse: initial column width L0 and height H0, m.
+    column_width: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 0.02
+    column_height: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 0.04
+    #: empty space kept above the material for the grid, as a multiple of the initial height.
+    headroom: Annotated[float, Field(ge=0.05, le=10, allow_inf_nan=False)] = 0.3
+
+
+class GridConfig(_Section):
+    """MPM background grid (physics.md §5.1)."""
+
+    #: background cell size h, m.
+    cell_size: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = 5.0e-4
+    #: material points per cell and direction (2 → 4 points per cell, spacing h/2).
+    particles_per_cell: Annotated[int, Field(ge=1, le=6)] = 2
+    #: shape functions: quadratic B-splines.
+    shape: Literal["bspline2"] = "bspline2"
+    #: particle–grid transfer: APIC (default) or MUSL with a FLIP/PIC blend.
+    transfer: Literal["apic", "flip"] = "apic"
+    #: FLIP fraction of the FLIP/PIC blend (transfer = "flip").
+    flip_fraction: Fraction = 0.99
+    #: threads for the compiled loop (0 = numba's default). Results do not depend on it.
+    threads: Annotated[int, Field(ge=0, le=256)] = 0
+
+
+class MaterialConfig(_Section):
+    """Constitutive model: Fei et al. 2016 (physics.md §1) or linear elasticity (verification)."""
+
+    model: Literal["fei2016", "linear_elastic"] = "fei2016"
+    #: grain (material) density ρ_s, kg/m³.
+    grain_density: Annotated[float, Field(gt=0, le=1e5, allow_inf_nan=False)] = 2650.0
+    #: solid volume fraction f of the mixture (bulk density ρ = f ρ_s).
+    solid_fraction: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.6
+    #: Jiang–Liu bulk coefficient A, Pa.
+    A: Annotated[float, Field(gt=0, le=1e13, allow_inf_nan=False)] = 1.79e9
+    #: q_φ, the friction coefficient at loss of elastic convexity.
+    q_phi: Annotated[float, Field(gt=0, le=2, allow_inf_nan=False)] = 0.38
+    #: μ_d(I) = a I^b.
+    a: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.46
+    b: Annotated[float, Field(gt=0, le=2, allow_inf_nan=False)] = 1.0
+    #: factor on A and C (stiffness reduction, physics.md §1.7).
+    stiffness_scale: Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)] = 1.0
+    #: r_c, yield cap on the deviatoric elastic strain at r_c I1/q_φ (physics.md §1.5).
+    cap_ratio: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.95
+    #: factor on σ^d (1 = standard μ(I) normalisation, 0.5 = the seed's literal formula).
+    sigma_d_factor: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 1.0
+    #: floor on the shear rate in μ_d for b < 1, 1/s.
+    shear_rate_floor: Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)] = 1e-6
+    #: bulk viscosity ζ_b as a fraction of ρ c h (physics.md §5.5), 0 disables.
+    bulk_viscosity: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.0
+    #: initial state: "geostatic" (I1 from the oedometric law under the initial load) or "stress_free".
+    initial_state: Literal["geostatic", "stress_free"] = "geostatic"
+    #: linear elastic: Young's modulus E (Pa) and Poisson's ratio ν.
+    youngs_modulus: Annotated[float, Field(gt=0, le=1e13, allow_inf_nan=False)] = 1.0e6
+    poisson_ratio: Annotated[float, Field(ge=0, lt=0.5, allow_inf_nan=False)] = 0.0
+
+
+class MixtureConfig(_Section):
+    """Binary mixture (physics.md §0)."""
+
+    d_small: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 2.0e-3
+    d_large: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 3.0e-3
+    #: φ^s at t = 0, uniform.
+    phi_small_initial: Fraction = 0.5
+
+    @model_validator(mode="after")
+    def _sizes(self) -> MixtureConfig:
+        if self.d_small > self.d_large:
+            raise ValueError(
+                f"mixture.d_small = {self.d_small} must not exceed mixture.d_large = {self.d_large}"
+            )
+        return self
+
+
+class SegregationConfig(_Section):
+    """Species transport on the extra Eulerian grid (physics.md §2, §5.7)."""
+
+    #: closure: the seed's reduced Hill–Tan Eq. 6 (default), the full vector Eq. 1, Gray–Thornton,
+    #: Fan et al. 2014, or none.
+    model: Literal["hill_tan_reduced", "hill_tan_full", "gray_thornton", "fan2014", "none"] = (
+        "hill_tan_reduced"
+    )
+    #: driver S of the kinetic-stress term (physics.md §2.4): A = μ_d p, B = κ_T ρ(γ̇ d̄)², C = σ^d_yy.
+    driver: Literal["A", "B", "C"] = "A"
+    #: scale factor κ on S.
+    kappa: Annotated[float, Field(ge=0, le=1e3, allow_inf_nan=False)] = 1.0
+    #: κ_T of driver B.
+    kappa_T: Annotated[float, Field(ge=0, le=1e3, allow_inf_nan=False)] = 0.3
+    #: linear drag coefficient c_D, 1/s.
+    c_D: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] = 6.8
+    #: η, m²/s² (D = η / c_D).
+    eta: Annotated[float, Field(ge=0, le=1e3, allow_inf_nan=False)] = 1.11e-5
+    #: kinetic-stress partition b^{k,s} (b^{k,l} = −b^{k,s}).
+    b_k_small: Annotated[float, Field(ge=-4, le=4, allow_inf_nan=False)] = 0.39
+    #: contact-stress partition b^{c,s} (0 = the seed's ψ^{c,i} = φ^i).
+    b_c_small: Annotated[float, Field(ge=-4, le=4, allow_inf_nan=False)] = 0.0
+    #: Gray–Thornton percolation speed q (m/s) and diffusivity (m²/s); q_shear_scaled uses q γ̇ d̄ instead.
+    q: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.01
+    q_shear_scaled: bool = False
+    diffusivity: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 1.6e-6
+    #: Fan et al. 2014: segregation velocity factor S_r (m) in w = S_r γ̇ (1-φ), and the D prefactor.
+    fan_S: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 1.0e-4
+    fan_D_coeff: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.042
+    #: extra-grid cell size h_c, m (0 = half the MPM cell).
+    cell_size: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.0
+    #: minimum fill fraction θ_min of an active concentration cell.
+    fill_min: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.5
+    #: face flux: exponentially fitted Scharfetter–Gummel (default) or upwind + central.
+    flux: Literal["sg", "upwind"] = "sg"
+    #: target length of one concentration step, s (it is also limited by stability).
+    dt: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = 1.0e-3
+
+
+class BoundaryConfig(_Section):
+    """Boundaries (physics.md §3.3, §5.3–5.4)."""
+
+    #: μ_w of the sidewall body force −(2 μ_w K_w p / W) v/|v| (0 disables it).
+    sidewall_friction: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.3
+    #: K_w, ratio of the wall normal stress to the pressure.
+    wall_normal_stress_ratio: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 1.0
+    #: base (y = 0): no-slip (rough), free-slip, or Coulomb friction.
+    base: Literal["noslip", "slip", "friction"] = "noslip"
+    base_friction: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.5
+    #: walls at x = 0 and x = length in non-periodic scenarios (collapse, bar).
+    walls: Literal["noslip", "slip", "friction"] = "slip"
+    wall_friction: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.3
+    #: time over which the sidewall friction and the tangential gravity ramp on, s (0 = at once).
+    ramp_time: Annotated[float, Field(ge=0, le=1e3, allow_inf_nan=False)] = 0.0
+
+
+class TimeConfig(_Section):
+    """Time integration (physics.md §5.5)."""
+
+    #: simulated time to reach, s.
+    end: Annotated[float, Field(gt=0, le=1e5, allow_inf_nan=False)] = 20.0
+    #: Courant number of the time step Δt = CFL h / max(c + |v|).
+    cfl: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.4
+    #: largest time step, s.
+    dt_max: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 1.0e-3
+    #: the run fails (exit 3) if Δt falls below this, s.
+    dt_min: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 1.0e-12
+    #: compiled steps between Python's looks at the state (progress, NaN check, outputs).
+    chunk_steps: Annotated[int, Field(ge=1, le=10_000_000)] = 2000
+    #: gravitational acceleration, m/s².
+    gravity: Annotated[float, Field(ge=0, le=1e3, allow_inf_nan=False)] = 9.81
+
+
+class OutputConfig(_Section):
+    """What a run writes (interface.md, "Outputs")."""
+
+    #: output directory (``--out`` overrides it).
+    dir: str = "segmpm-out"
+    #: times at which depth profiles are written, s.
+    profile_times: list[Annotated[float, Field(ge=0, allow_inf_nan=False)]] = [
+        0.0,
+        0.5,
+        1.0,
+        2.0,
+        5.0,
+        10.0,
+        20.0,
+    ]
+    #: thickness of the depth-profile bins, m.
+    profile_bin: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 5.0e-4
+    #: simulated time between checkpoints, s (0 = only at the end and on interrupt).
+    checkpoint_interval: Annotated[float, Field(ge=0, le=1e5, allow_inf_nan=False)] = 1.0
+    #: particle snapshots (VTK) at the profile times.
+    fields: bool = True
+    #: PNG figures at the end.
+    figures: bool = True
+    #: progress bar on stderr.
+    progress: bool = True
+
+    @model_validator(mode="after")
+    def _sorted(self) -> OutputConfig:
+        if sorted(self.profile_times) != list(self.profile_times):
+            raise ValueError("output.profile_times must be in increasing order")
+        if len(set(self.profile_times)) != len(self.profile_times):
+            raise ValueError("output.profile_times must not repeat a time")
+        return self
+
+
+class Config(_Section):
+    """A complete run configuration."""
+
+    scenario: ScenarioConfig = ScenarioConfig()
+    geometry: GeometryConfig = GeometryConfig()
+    grid: GridConfig = GridConfig()
+    material: MaterialConfig = MaterialConfig()
+    mixture: MixtureConfig = MixtureConfig()
+    segregation: SegregationConfig = SegregationConfig()
+    boundary: BoundaryConfig = BoundaryConfig()
+    time: TimeConfig = TimeConfig()
+    output: OutputConfig = OutputConfig()
+
+    @model_validator(mode="after")
+    def _consistency(self) -> Config:
+        h = self.grid.cell_size
+        g = self.geometry
+        kind = self.scenario.kind
+        if kind in ("chute", "box"):
+            n = g.length / h
+            if abs(n - round(n)) > 1e-6 * max(1.0, n) or round(n) < 3:
+                raise ValueError(
+                    f"geometry.length = {g.length} must be a whole number (≥ 3) of grid.cell_size = {h} "
+                    f"cells for the periodic direction (got {n:.6g} cells)"
+                )
+        if kind in ("chute", "box", "bar") and g.depth < h / self.grid.particles_per_cell:
+            raise ValueError(
+                f"geometry.depth = {g.depth} is thinner than one material-point spacing "
+                f"({h / self.grid.particles_per_cell}); allowed: depth ≥ cell_size/particles_per_cell"
+            )
+        if kind == "collapse" and g.column_width > g.length:
+            raise ValueError(
+                f"geometry.column_width = {g.column_width} must not exceed geometry.length = {g.length}"
+            )
+        # Memory guard: estimate the sizes before anything is allocated.
+        ppc = self.grid.particles_per_cell
+        if kind == "collapse":
+            area = g.column_width * g.column_height
+            extent_x, extent_y = g.length, g.column_height * (1 + g.headroom)
+        else:
+            area = g.length * g.depth
+            extent_x, extent_y = g.length, g.depth * (1 + g.headroom)
+        n_particles = area / (h / ppc) ** 2
+        n_nodes = (extent_x / h + 5) * (extent_y / h + 5)
+        if n_particles > MAX_PARTICLES or n_nodes > MAX_NODES:
+            raise ValueError(
+                f"grid.cell_size = {h} gives about {n_particles:.3g} material points and "
+                f"{n_nodes:.3g} grid nodes; allowed at most {MAX_PARTICLES:.3g} points and "
+                f"{MAX_NODES:.3g} nodes (about {n_particles * 400 / 1e9:.2g} GB): "
+                "increase grid.cell_size or reduce the geometry"
+            )
+        hc = self.segregation.cell_size
+        if hc > 0 and hc > 4 * h:
+            raise ValueError(
+                f"segregation.cell_size = {hc} must be at most 4 × grid.cell_size = {4 * h}"
+            )
+        if self.time.dt_min >= self.time.dt_max:
+            raise ValueError(
+                f"time.dt_min = {self.time.dt_min} must be smaller than time.dt_max = {self.time.dt_max}"
+            )
+        return self
+
+    # convenience -------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """The fully resolved configuration as plain Python data (TOML-serialisable)."""
+        return self.model_dump(mode="json")
+
+    def to_toml(self) -> str:
+        """The fully resolved configuration as TOML text."""
+        return dump_toml(self.to_dict())
+
+
+# --------------------------------------------------------------------------------------------
+# loading, overrides, error messages
+
+
+def _ranges(model: type[BaseModel], field: str) -> str:
+    """Human-readable allowed range of a field, from its pydantic metadata."""
+    info = model.model_fields.get(field)
+    if info is None:
+        return ""
+    parts = []
+    for m in info.metadata:
+        for attr, sym in (("gt", ">"), ("ge", "≥"), ("lt", "<"), ("le", "≤")):
+            v = getattr(m, attr, None)
+            if v is not None:
+                parts.append(f"{sym} {v}")
+    ann = info.annotation
+    args = getattr(ann, "__args__", None)
+    if getattr(ann, "__origin__", None) is Literal or (
+        args and all(isinstance(a, str) for a in args)
+    ):
+        parts.append("one of " + ", ".join(repr(a) for a in args))
+    return " and ".join(parts)
+
+
+_SECTIONS: dict[str, type[BaseModel]] = {
+    name: f.annotation
+    for name, f in Config.model_fields.items()  # type: ignore[misc]
+}
+
+
+def _format_validation_error(err: ValidationError, data: dict[str, Any]) -> str:
+    msgs = []
+    for e in err.errors():
+        loc = [str(p) for p in e["loc"] if not isinstance(p, int)]
+        key = ".".join(loc) if loc else "(configuration)"
+        value = e.get("input")
+        kind = e["type"]
+        if kind == "extra_forbidden":
+            section = loc[0] if loc else ""
+            if len(loc) == 1:
+                allowed = ", ".join(_SECTIONS)
+                msgs.append(f"unknown section '{key}'; allowed sections: {allowed}")
+            else:
+                model = _SECTIONS.get(section)
+                allowed = ", ".join(model.model_fields) if model else ""
+                msgs.append(f"unknown key '{key}'; allowed keys in [{section}]: {allowed}")
+            continue
+        rng = ""
+        if len(loc) == 2 and loc[0] in _SECTIONS:
+            rng = _ranges(_SECTIONS[loc[0]], loc[1])
+        text = e["msg"]
+        if text.startswith("Value error, "):
+            text = text[len("Value error, ") :]
+            msgs.append(text if key == "(configuration)" or key in text else f"{key}: {text}")
+            continue
+        msg = f"{key} = {value!r} is invalid: {text}"
+        if rng:
+            msg += f" (allowed: {rng})"
+        msgs.append(msg)
+    return "invalid configuration: " + "; ".join(msgs)
+
+
+def parse_override(item: str) -> tuple[list[str], Any]:
+    """Parse one ``section.key=value`` override; the value uses TOML syntax.
+
+    A bare word that is not valid TOML is taken as a string (``--set scenario.kind=chute``).
+    """
+    if "=" not in item:
+        raise ConfigError(
+            f"--set {item!r}: expected section.key=value (e.g. --set geometry.slope_deg=24)"
+        )
+    key, raw = item.split("=", 1)
+    key = key.strip()
+    parts = key.split(".")
+    if len(parts) != 2 or not all(p.strip() for p in parts):
+        raise ConfigError(
+            f"--set {item!r}: the key {key!r} must have the form section.key "
+            f"with a section among {', '.join(_SECTIONS)}"
+        )
+    raw = raw.strip()
+    if raw == "":
+        raise ConfigError(f"--set {item!r}: missing value for key {key!r}")
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        if any(c in raw for c in "[]{}\"'=\n"):
+            raise ConfigError(f"--set {item!r}: the value {raw!r} is not valid TOML") from None
+        value = raw
+    return parts, value
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str] | None) -> dict[str, Any]:
+    """Apply ``--set`` overrides to raw configuration data (before validation)."""
+    data = copy.deepcopy(data)
+    for item in overrides or []:
+        (section, key), value = parse_override(item)
+        if section not in _SECTIONS:
+            raise ConfigError(
+                f"--set {item!r}: unknown section '{section}'; allowed sections: {', '.join(_SECTIONS)}"
+            )
+        sec = data.setdefault(section, {})
+        if not isinstance(sec, dict):
+            raise ConfigError(f"configuration section '{section}' must be a table")
+        sec[key] = value
+    return data
+
+
+def validate_data(data: dict[str, Any]) -> Config:
+    """Validate raw data into a :class:`Config`, raising :class:`ConfigError` with a clear message."""
+    if not isinstance(data, dict):
+        raise ConfigError("invalid configuration: the top level must be a table of sections")
+    try:
+        return Config.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format_validation_error(err, data)) from None
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """Read a TOML file into raw data, with errors as :class:`ConfigError`."""
+    p = Path(path)
+    if not p.exists():
+        raise ConfigError(f"configuration file {str(p)!r} does not exist")
+    if not p.is_file():
+        raise ConfigError(f"configuration path {str(p)!r} is not a file")
+    try:
+        with p.open("rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"configuration file {str(p)!r} is not valid TOML: {err}") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise ConfigError(f"configuration file {str(p)!r} cannot be read: {err}") from None
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
+    """Load a configuration (the built-in default when ``path`` is None) and apply overrides.
+
+    >>> cfg = load_config(overrides=["time.end=0.1"])
+    >>> cfg.scenario.kind
+    'chute'
+    """
+    data = read_toml(path) if path is not None else default_data()
+    data = apply_overrides(data, overrides)
+    return validate_data(data)
+
+
+def default_data() -> dict[str, Any]:
+    """The built-in default configuration (the seed chute case, reduced-cost preset)."""
+    from importlib import resources
+
+    text = resources.files("segmpm").joinpath("presets/chute_seed.toml").read_text()
+    return tomllib.loads(text)
+
+
+# --------------------------------------------------------------------------------------------
+# minimal TOML writer (the configuration is two levels deep: sections of scalars and lists)
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isnan(v) or math.isinf(v):
+            raise ValueError("non-finite value in configuration")
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def dump_toml(data: dict[str, Any]) -> str:
+    """Serialise a two-level configuration dictionary to TOML."""
+    lines: list[str] = []
+    for section, table in data.items():
+        lines.append(f"[{section}]")
+        for k, v in table.items():
+            lines.append(f"{k} = {_toml_value(v)}")
+        lines.append("")
+    return "\n".join(lines)

@@ -1,0 +1,1 @@
+"""Output writers: NetCDF depth profiles, VTK particle series, checkpoints, figures, run.json."""

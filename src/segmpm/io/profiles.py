@@ -1,0 +1,76 @@
+"""``profiles.nc``: depth profiles on (time, y), written atomically after every output time."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from ..analysis.profiles import PROFILE_VARIABLES
+from .atomic import write_with
+
+
+class ProfileWriter:
+    """Collects profiles at the output times and rewrites ``profiles.nc`` each time (small file)."""
+
+    def __init__(self, path: str | Path, edges: np.ndarray, attrs: dict[str, str]):
+        self.path = Path(path)
+        self.edges = np.asarray(edges, dtype=np.float64)
+        self.attrs = dict(attrs)
+        self.times: list[float] = []
+        self.rows: list[dict[str, np.ndarray]] = []
+
+    @property
+    def y(self) -> np.ndarray:
+        """Bin centres, m."""
+        return 0.5 * (self.edges[1:] + self.edges[:-1])
+
+    def add(self, time: float, profiles: dict[str, np.ndarray]) -> None:
+        """Append the profiles at ``time`` and rewrite the file."""
+        self.times.append(float(time))
+        self.rows.append({k: np.asarray(v, dtype=np.float64) for k, v in profiles.items()})
+        self.write()
+
+    def dataset(self) -> xr.Dataset:
+        """The profiles as an xarray Dataset."""
+        data_vars = {}
+        for name, (units, long_name) in PROFILE_VARIABLES.items():
+            if self.rows and name not in self.rows[0]:
+                continue
+            arr = (
+                np.stack([r[name] for r in self.rows]) if self.rows else np.zeros((0, len(self.y)))
+            )
+            data_vars[name] = (("time", "y"), arr, {"units": units, "long_name": long_name})
+        ds = xr.Dataset(
+            data_vars,
+            coords={
+                "time": ("time", np.asarray(self.times), {"units": "s", "long_name": "time"}),
+                "y": (
+                    "y",
+                    self.y,
+                    {"units": "m", "long_name": "distance normal to the base (bin centre)"},
+                ),
+            },
+            attrs=self.attrs,
+        )
+        ds["y_edges"] = (("y_edge",), self.edges, {"units": "m"})
+        return ds
+
+    def write(self) -> None:
+        """Atomically (re)write the NetCDF file."""
+        ds = self.dataset()
+        write_with(self.path, lambda tmp: ds.to_netcdf(tmp, engine="h5netcdf"))
+
+    def restore(self, until: float) -> None:
+        """Reload the profiles already written up to time ``until`` (resume)."""
+        if not self.path.exists():
+            return
+        with xr.open_dataset(self.path, engine="h5netcdf") as ds:
+            ds = ds.load()
+        for i, t in enumerate(ds["time"].values):
+            if t <= until + 1e-12:
+                self.times.append(float(t))
+                self.rows.append(
+                    {k: ds[k].values[i] for k in PROFILE_VARIABLES if k in ds.data_vars}
+                )

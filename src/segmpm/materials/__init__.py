@@ -1,0 +1,37 @@
+"""Constitutive models: stress from (rate of deformation, state). No grid, no I/O.
+
+Each model has a compiled per-point update with the contract of
+:func:`segmpm.materials.fei2016.fei_update` and a NumPy reference with the suffix ``_np``.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+
+from .elastic import elastic_update, elastic_update_np
+from .fei2016 import fei_update, fei_update_np
+from .params import KIND_FEI2016, KIND_LINEAR_ELASTIC, M_KIND, pack_material
+
+
+@njit(cache=True)
+def material_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
+    """Dispatch on the model chosen at set-up (slot ``M_KIND``)."""
+    if prm[M_KIND] == KIND_FEI2016:
+        return fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi)
+    return elastic_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi)
+
+
+def material_update_np(prm, L, dt, eps, J, phi):
+    """NumPy reference dispatch."""
+    if prm[M_KIND] == KIND_FEI2016:
+        return fei_update_np(prm, L, dt, eps, J, phi)
+    return elastic_update_np(prm, L, dt, eps, J, phi)
+
+
+__all__ = [
+    "KIND_FEI2016",
+    "KIND_LINEAR_ELASTIC",
+    "material_update",
+    "material_update_np",
+    "pack_material",
+]

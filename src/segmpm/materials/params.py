@@ -1,0 +1,71 @@
+"""Material parameters as one float64 record (slots named below) for the compiled kernels.
+
+The engine selects the constitutive law by the integer in slot ``M_KIND`` at set-up; the string
+names of the configuration never reach compiled code.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..config import Config
+
+KIND_LINEAR_ELASTIC = 0
+KIND_FEI2016 = 1
+
+DRIVER_A = 0  # S = μ_d(I) p_e   (physics.md §2.4, default)
+DRIVER_B = 1  # S = κ_T ρ (γ̇ d̄)²
+DRIVER_C = 2  # S = −σ^d_yy (literal seed; ≈ 0 in steady shear, diagnostic)
+
+(
+    M_KIND,
+    M_RHO_S,  # ρ_s, grain density
+    M_F,  # f, solid fraction of the stress-free state
+    M_A,  # A (already multiplied by stiffness_scale)
+    M_C,  # C = 5 q_φ² A
+    M_QPHI,  # q_φ
+    M_MU_A,  # a of μ_d = a I^b
+    M_MU_B,  # b
+    M_RC,  # r_c, yield cap ratio
+    M_SDF,  # sigma_d_factor
+    M_GFLOOR,  # shear-rate floor for b < 1
+    M_ZETA,  # bulk viscosity as a fraction of ρ c h
+    M_H,  # MPM cell size h (bulk viscosity)
+    M_DS,  # d_s
+    M_DL,  # d_l
+    M_DRIVER,  # segregation driver (DRIVER_*)
+    M_KAPPA,  # κ, scale on S
+    M_KAPPA_T,  # κ_T of driver B
+    M_LAMBDA,  # linear elastic λ
+    M_MU,  # linear elastic μ (shear modulus)
+    M_NSLOTS,
+) = range(21)
+
+
+def pack_material(cfg: Config) -> np.ndarray:
+    """Build the material record from a configuration."""
+    m = cfg.material
+    prm = np.zeros(M_NSLOTS, dtype=np.float64)
+    prm[M_KIND] = KIND_FEI2016 if m.model == "fei2016" else KIND_LINEAR_ELASTIC
+    prm[M_RHO_S] = m.grain_density
+    prm[M_F] = m.solid_fraction
+    A = m.A * m.stiffness_scale
+    prm[M_A] = A
+    prm[M_C] = 5.0 * m.q_phi**2 * A
+    prm[M_QPHI] = m.q_phi
+    prm[M_MU_A] = m.a
+    prm[M_MU_B] = m.b
+    prm[M_RC] = m.cap_ratio
+    prm[M_SDF] = m.sigma_d_factor
+    prm[M_GFLOOR] = m.shear_rate_floor
+    prm[M_ZETA] = m.bulk_viscosity
+    prm[M_H] = cfg.grid.cell_size
+    prm[M_DS] = cfg.mixture.d_small
+    prm[M_DL] = cfg.mixture.d_large
+    prm[M_DRIVER] = {"A": DRIVER_A, "B": DRIVER_B, "C": DRIVER_C}[cfg.segregation.driver]
+    prm[M_KAPPA] = cfg.segregation.kappa
+    prm[M_KAPPA_T] = cfg.segregation.kappa_T
+    E, nu = m.youngs_modulus, m.poisson_ratio
+    prm[M_LAMBDA] = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    prm[M_MU] = E / (2.0 * (1.0 + nu))
+    return prm

@@ -1,0 +1,34 @@
+"""Quadratic B-spline shape functions (physics.md §5.1; Steffen, Kirby & Berzins 2008).
+
+In grid units ξ = (x − x0)/h, a point touches the three nodes ``base, base+1, base+2`` with
+``base = floor(ξ − 0.5)``. The weights are C¹ and sum to one; their gradients sum to zero.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, inline="always")
+def bspline2(xi: float) -> tuple[int, float, float, float, float, float, float]:
+    """Base node and the weights/derivatives (per grid unit) of the quadratic B-spline at ξ."""
+    base = int(np.floor(xi - 0.5))
+    f = xi - base  # in [0.5, 1.5)
+    w0 = 0.5 * (1.5 - f) ** 2
+    w1 = 0.75 - (f - 1.0) ** 2
+    w2 = 0.5 * (f - 0.5) ** 2
+    d0 = f - 1.5
+    d1 = -2.0 * (f - 1.0)
+    d2 = f - 0.5
+    return base, w0, w1, w2, d0, d1, d2
+
+
+def bspline2_np(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """NumPy reference: base (n,), weights (n, 3), derivatives per grid unit (n, 3)."""
+    xi = np.asarray(xi, dtype=np.float64)
+    base = np.floor(xi - 0.5).astype(np.int64)
+    f = xi - base
+    w = np.stack([0.5 * (1.5 - f) ** 2, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2], axis=-1)
+    d = np.stack([f - 1.5, -2.0 * (f - 1.0), f - 0.5], axis=-1)
+    return base, w, d

@@ -1,0 +1,225 @@
+"""Particle ↔ grid transfers: P2G, grid momentum update, G2P (physics.md §5.2).
+
+Points are struct-of-arrays: ``x`` (2, N), ``v`` (2, N), ``C`` (4, N) the APIC affine matrix
+(C00, C01, C10, C11), ``sig`` (4, N) Cauchy stress (xx, yy, xy, zz). Grid arrays are
+(N_x, N_y[, k]).
+
+P2G is parallel and deterministic whatever the thread count: points are sorted into horizontal
+strips two cells high; strips of one colour (even, then odd) never share a node, so each strip
+scatters its points in index order without atomics, and every node receives its contributions
+in the same order on any number of threads.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from .boundary import apply_bc, sidewall_friction
+from .params import G_GX, G_GY, G_H, G_NX, G_PERIODIC, G_SIDEWALL, G_X0, G_Y0
+from .shape import bspline2
+
+#: nodal accumulator fields of P2G
+N_MASS, N_MX, N_MY, N_FX, N_FY, N_MP, N_MRHO, N_FIELDS = range(8)
+
+
+@njit(cache=True)
+def sort_into_strips(py, gp, strip_start, cursor, order):
+    """Stable counting sort of the points by strip (2 cell rows); ``order`` lists them by strip."""
+    h = gp[G_H]
+    y0 = gp[G_Y0]
+    ns = strip_start.shape[0] - 1
+    strip_start[:] = 0
+    n = py.shape[0]
+    for p in range(n):
+        s = int(math.floor((py[p] - y0) / h)) // 2
+        s = min(max(s, 0), ns - 1)
+        cursor[p] = s
+        strip_start[s + 1] += 1
+    for s in range(ns):
+        strip_start[s + 1] += strip_start[s]
+    fill = np.empty(ns, dtype=np.int64)
+    for s in range(ns):
+        fill[s] = strip_start[s]
+    for p in range(n):
+        s = cursor[p]
+        order[fill[s]] = p
+        fill[s] += 1
+
+
+@njit(cache=True, inline="always")
+def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, gp, grid, with_force):
+    h = gp[G_H]
+    x0 = gp[G_X0]
+    y0 = gp[G_Y0]
+    nx = int(gp[G_NX])
+    periodic = gp[G_PERIODIC] != 0.0
+    xp = x[0, p]
+    yp = x[1, p]
+    bx, wx0, wx1, wx2, dx0, dx1, dx2 = bspline2((xp - x0) / h)
+    by, wy0, wy1, wy2, dy0, dy1, dy2 = bspline2((yp - y0) / h)
+    wx = (wx0, wx1, wx2)
+    wy = (wy0, wy1, wy2)
+    dwx = (dx0 / h, dx1 / h, dx2 / h)
+    dwy = (dy0 / h, dy1 / h, dy2 / h)
+    m = mass[p]
+    vol = vol0[p] * J[p]
+    rho = m / vol
+    vx = v[0, p]
+    vy = v[1, p]
+    c00 = C[0, p]
+    c01 = C[1, p]
+    c10 = C[2, p]
+    c11 = C[3, p]
+    sxx = sig[0, p]
+    syy = sig[1, p]
+    sxy = sig[2, p]
+    pp = pres[p]
+    for a in range(3):
+        ixu = bx + a
+        ix = ixu % nx if periodic else ixu
+        ddx = ixu * h + x0 - xp
+        for b in range(3):
+            iy = by + b
+            ddy = iy * h + y0 - yp
+            w = wx[a] * wy[b]
+            mw = m * w
+            grid[ix, iy, N_MASS] += mw
+            grid[ix, iy, N_MX] += mw * (vx + c00 * ddx + c01 * ddy)
+            grid[ix, iy, N_MY] += mw * (vy + c10 * ddx + c11 * ddy)
+            grid[ix, iy, N_MP] += mw * pp
+            grid[ix, iy, N_MRHO] += mw * rho
+            if with_force:
+                gx = dwx[a] * wy[b]
+                gy = wx[a] * dwy[b]
+                grid[ix, iy, N_FX] -= vol * (sxx * gx + sxy * gy)
+                grid[ix, iy, N_FY] -= vol * (sxy * gx + syy * gy)
+
+
+@njit(cache=True, parallel=True)
+def p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, with_force):
+    """Scatter mass, APIC momentum, internal force −Σ V σ·∇w, and the mass-weighted p and ρ."""
+    grid[:] = 0.0
+    ns = strip_start.shape[0] - 1
+    for colour in range(2):
+        nc = (ns - colour + 1) // 2
+        for k in prange(nc):
+            s = colour + 2 * k
+            for i in range(strip_start[s], strip_start[s + 1]):
+                _scatter_point(order[i], x, v, C, mass, vol0, J, sig, pres, gp, grid, with_force)
+
+
+@njit(cache=True, parallel=True)
+def grid_update(gp, grid, gv, gv_old, dt, ramp, sidewall_on):
+    """Nodal velocities: v* = (m v + Δt (f + m g))/m, sidewall friction, then boundaries.
+
+    ``ramp`` ∈ [0, 1] scales the tangential gravity and the sidewall force (start-up ramp).
+    ``gv_old`` receives m v / m before the update (FLIP).
+    """
+    nx = grid.shape[0]
+    ny = grid.shape[1]
+    h = gp[G_H]
+    x0 = gp[G_X0]
+    y0 = gp[G_Y0]
+    gx = gp[G_GX] * ramp
+    gy = gp[G_GY]
+    sw = gp[G_SIDEWALL] * ramp
+    for i in prange(nx):
+        xn = x0 + i * h
+        for j in range(ny):
+            m = grid[i, j, N_MASS]
+            if m <= 0.0:
+                gv[i, j, 0] = 0.0
+                gv[i, j, 1] = 0.0
+                gv_old[i, j, 0] = 0.0
+                gv_old[i, j, 1] = 0.0
+                continue
+            vox = grid[i, j, N_MX] / m
+            voy = grid[i, j, N_MY] / m
+            vx = vox + dt * (grid[i, j, N_FX] / m + gx)
+            vy = voy + dt * (grid[i, j, N_FY] / m + gy)
+            if sidewall_on and sw > 0.0:
+                pn = grid[i, j, N_MP] / m
+                if pn > 0.0:
+                    rn = grid[i, j, N_MRHO] / m
+                    vx, vy = sidewall_friction(vx, vy, dt * sw * pn / rn)
+            yn = y0 + j * h
+            vx, vy = apply_bc(gp, xn, yn, vx, vy)
+            gv[i, j, 0] = vx
+            gv[i, j, 1] = vy
+            gv_old[i, j, 0] = vox
+            gv_old[i, j, 1] = voy
+
+
+@njit(cache=True, parallel=True)
+def momentum_to_velocity(gp, grid, gv):
+    """MUSL remap: nodal velocity from the re-scattered point momenta, with the boundaries."""
+    nx = grid.shape[0]
+    ny = grid.shape[1]
+    h = gp[G_H]
+    for i in prange(nx):
+        for j in range(ny):
+            m = grid[i, j, N_MASS]
+            if m <= 0.0:
+                gv[i, j, 0] = 0.0
+                gv[i, j, 1] = 0.0
+                continue
+            vx, vy = apply_bc(
+                gp, gp[G_X0] + i * h, gp[G_Y0] + j * h, grid[i, j, N_MX] / m, grid[i, j, N_MY] / m
+            )
+            gv[i, j, 0] = vx
+            gv[i, j, 1] = vy
+
+
+@njit(cache=True, inline="always")
+def gather_point(p, x, gp, gv):
+    """Σ w v_i, APIC C_p = (4/h²) Σ w v_i (x_i − x_p)ᵀ and L_p = Σ v_i ⊗ ∇w_ip at point p."""
+    h = gp[G_H]
+    x0 = gp[G_X0]
+    y0 = gp[G_Y0]
+    nx = int(gp[G_NX])
+    periodic = gp[G_PERIODIC] != 0.0
+    xp = x[0, p]
+    yp = x[1, p]
+    bx, wx0, wx1, wx2, dx0, dx1, dx2 = bspline2((xp - x0) / h)
+    by, wy0, wy1, wy2, dy0, dy1, dy2 = bspline2((yp - y0) / h)
+    wx = (wx0, wx1, wx2)
+    wy = (wy0, wy1, wy2)
+    dwx = (dx0 / h, dx1 / h, dx2 / h)
+    dwy = (dy0 / h, dy1 / h, dy2 / h)
+    vx = 0.0
+    vy = 0.0
+    b00 = 0.0
+    b01 = 0.0
+    b10 = 0.0
+    b11 = 0.0
+    l00 = 0.0
+    l01 = 0.0
+    l10 = 0.0
+    l11 = 0.0
+    for a in range(3):
+        ixu = bx + a
+        ix = ixu % nx if periodic else ixu
+        ddx = ixu * h + x0 - xp
+        for b in range(3):
+            iy = by + b
+            ddy = iy * h + y0 - yp
+            w = wx[a] * wy[b]
+            ux = gv[ix, iy, 0]
+            uy = gv[ix, iy, 1]
+            vx += w * ux
+            vy += w * uy
+            b00 += w * ux * ddx
+            b01 += w * ux * ddy
+            b10 += w * uy * ddx
+            b11 += w * uy * ddy
+            gxw = dwx[a] * wy[b]
+            gyw = wx[a] * dwy[b]
+            l00 += ux * gxw
+            l01 += ux * gyw
+            l10 += uy * gxw
+            l11 += uy * gyw
+    k = 4.0 / (h * h)
+    return vx, vy, k * b00, k * b01, k * b10, k * b11, l00, l01, l10, l11

@@ -1,0 +1,22 @@
+"""Scenarios: build the initial material points, grid and boundaries from a configuration."""
+
+from __future__ import annotations
+
+from ..config import Config
+from ..state import State
+from .builders import build_bar, build_box, build_chute, build_collapse
+
+BUILDERS = {
+    "chute": build_chute,
+    "collapse": build_collapse,
+    "bar": build_bar,
+    "box": build_box,
+}
+
+
+def build(cfg: Config) -> State:
+    """Initial state of the scenario ``cfg.scenario.kind``."""
+    return BUILDERS[cfg.scenario.kind](cfg)
+
+
+__all__ = ["build", "BUILDERS"]

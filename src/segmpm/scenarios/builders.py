@@ -1,0 +1,227 @@
+"""Scenario builders (physics.md §3.6 for the chute's initial and boundary conditions).
+
+Material points sit on a regular lattice, ``particles_per_cell`` per cell and direction; the
+lattice spacing is stretched slightly so that the body fills its nominal extent exactly. Every
+builder returns a :class:`~segmpm.state.State` whose grid record (``gp``) carries the boundaries.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..config import Config
+from ..materials import KIND_FEI2016, pack_material
+from ..materials.fei2016 import oedometric_strain
+from ..materials.params import M_A, M_C, M_LAMBDA, M_MU
+from ..mpm.params import (
+    BC_CODES,
+    BC_NOSLIP,
+    BC_OPEN,
+    G_BASE_KIND,
+    G_BASE_MU,
+    G_BASE_Y,
+    G_CFL,
+    G_DTMAX,
+    G_DTMIN,
+    G_FLIP,
+    G_GX,
+    G_GY,
+    G_H,
+    G_LX,
+    G_NSLOTS,
+    G_NX,
+    G_NY,
+    G_PERIODIC,
+    G_RAMP,
+    G_SIDEWALL,
+    G_TRANSFER,
+    G_WALL_MU,
+    G_X0,
+    G_XHI,
+    G_XHI_KIND,
+    G_XLO,
+    G_XLO_KIND,
+    G_Y0,
+    TRANSFER_APIC,
+    TRANSFER_FLIP,
+)
+from ..state import State
+
+#: ghost node rows kept below the lowest point / beside non-periodic walls
+GHOST = 3
+
+
+def gravity_vector(cfg: Config) -> tuple[float, float]:
+    """g in the slope frame: (g sin θ, −g cos θ) (physics.md §0)."""
+    th = math.radians(cfg.geometry.slope_deg)
+    return cfg.time.gravity * math.sin(th), -cfg.time.gravity * math.cos(th)
+
+
+def lattice(x_lo: float, x_hi: float, y_lo: float, y_hi: float, spacing: float):
+    """Cell-centred lattice filling [x_lo, x_hi] × [y_lo, y_hi]; returns (x (2, N), area per point)."""
+    nx = max(1, round((x_hi - x_lo) / spacing))
+    ny = max(1, round((y_hi - y_lo) / spacing))
+    sx = (x_hi - x_lo) / nx
+    sy = (y_hi - y_lo) / ny
+    xs = x_lo + (np.arange(nx) + 0.5) * sx
+    ys = y_lo + (np.arange(ny) + 0.5) * sy
+    X, Y = np.meshgrid(xs, ys, indexing="xy")  # row-major in y: points ordered by height
+    return np.stack([X.ravel(), Y.ravel()]), sx * sy
+
+
+def grid_record(
+    cfg: Config,
+    *,
+    x0: float,
+    nx: int,
+    y0: float,
+    ny: int,
+    periodic: bool,
+    base: str,
+    xlo: str = "open",
+    xhi: str = "open",
+    x_hi_wall: float = 0.0,
+    sidewall: bool = True,
+    gravity: bool = True,
+) -> np.ndarray:
+    """The grid/boundary/time-step record ``gp`` (mpm.params ``G_*``)."""
+    h = cfg.grid.cell_size
+    b = cfg.boundary
+    gp = np.zeros(G_NSLOTS)
+    gp[G_X0], gp[G_Y0], gp[G_H] = x0, y0, h
+    gp[G_NX], gp[G_NY] = nx, ny
+    gp[G_PERIODIC] = 1.0 if periodic else 0.0
+    gp[G_LX] = nx * h if periodic else 0.0
+    gp[G_BASE_KIND] = BC_CODES[base]
+    gp[G_BASE_Y] = 0.0
+    gp[G_BASE_MU] = b.base_friction
+    gp[G_XLO_KIND] = BC_CODES[xlo]
+    gp[G_XLO] = 0.0
+    gp[G_XHI_KIND] = BC_CODES[xhi]
+    gp[G_XHI] = x_hi_wall
+    gp[G_WALL_MU] = b.wall_friction
+    gx, gy = gravity_vector(cfg) if gravity else (0.0, 0.0)
+    gp[G_GX], gp[G_GY] = gx, gy
+    if sidewall and b.sidewall_friction > 0:
+        gp[G_SIDEWALL] = 2.0 * b.sidewall_friction * b.wall_normal_stress_ratio / cfg.geometry.width
+    gp[G_RAMP] = b.ramp_time
+    gp[G_CFL] = cfg.time.cfl
+    gp[G_DTMAX] = cfg.time.dt_max
+    gp[G_DTMIN] = cfg.time.dt_min
+    gp[G_TRANSFER] = TRANSFER_FLIP if cfg.grid.transfer == "flip" else TRANSFER_APIC
+    gp[G_FLIP] = cfg.grid.flip_fraction
+    return gp
+
+
+def _initial_strain(cfg: Config, mp: np.ndarray, p_yy: np.ndarray):
+    """Elastic strain (4, N) and J carrying σ_yy = −p_yy in an oedometric state (physics.md §3.6)."""
+    n = p_yy.shape[0]
+    eps = np.zeros((4, n))
+    J = np.ones(n)
+    if cfg.material.initial_state != "geostatic":
+        return eps, J
+    if mp[0] == KIND_FEI2016:
+        e = oedometric_strain(p_yy, mp[M_A], mp[M_C])
+        J = np.exp(-e)  # I₁ = −ln J = e
+    else:
+        e = np.maximum(p_yy, 0.0) / (mp[M_LAMBDA] + 2.0 * mp[M_MU])
+    eps[1] = -e
+    return eps, J
+
+
+def _points_state(cfg, x, area, gp, mp, p_yy, velocity=None) -> State:
+    n = x.shape[1]
+    eps, J = _initial_strain(cfg, mp, p_yy)
+    rho_ref = cfg.material.solid_fraction * cfg.material.grain_density
+    vol0 = np.full(n, area) / J  # stress-free reference volume
+    mass = rho_ref * vol0
+    v = np.zeros((2, n)) if velocity is None else velocity
+    phi = np.full(n, cfg.mixture.phi_small_initial)
+    return State.from_points(x, v, mass, vol0, J, eps, phi, gp, mp)
+
+
+def _ny(top: float, h: float) -> int:
+    return int(math.ceil(top / h)) + 2 * GHOST + 1
+
+
+def build_chute(cfg: Config) -> State:
+    """Periodic layer of depth H on a slope θ with a no-slip base at y = 0 (physics.md §3)."""
+    g = cfg.geometry
+    h = cfg.grid.cell_size
+    nx = round(g.length / h)
+    spacing = h / cfg.grid.particles_per_cell
+    x, area = lattice(0.0, nx * h, 0.0, g.depth, spacing)
+    gp = grid_record(
+        cfg, x0=0.0, nx=nx, y0=-GHOST * h, ny=_ny(g.depth * (1 + g.headroom), h),
+        periodic=True, base=cfg.boundary.base,
+    )  # fmt: skip
+    mp = pack_material(cfg)
+    rho = cfg.material.solid_fraction * cfg.material.grain_density
+    p_yy = rho * (-gp[G_GY]) * (g.depth - x[1])
+    return _points_state(cfg, x, area, gp, mp, p_yy)
+
+
+def build_box(cfg: Config) -> State:
+    """Periodic layer of depth H floating in the middle of the grid (no base): free fall and
+    momentum tests. It moves with ``scenario.velocity`` along x; stress-free."""
+    g = cfg.geometry
+    h = cfg.grid.cell_size
+    nx = round(g.length / h)
+    spacing = h / cfg.grid.particles_per_cell
+    bottom = g.headroom * g.depth
+    x, area = lattice(0.0, nx * h, bottom, bottom + g.depth, spacing)
+    gp = grid_record(
+        cfg, x0=0.0, nx=nx, y0=-GHOST * h, ny=_ny(g.depth * (1 + 2 * g.headroom), h),
+        periodic=True, base="open", sidewall=False,
+    )  # fmt: skip
+    mp = pack_material(cfg)
+    vel = np.zeros_like(x)
+    vel[0] = cfg.scenario.velocity
+    st = _points_state(cfg, x, area, gp, mp, np.zeros(x.shape[1]), velocity=vel)
+    st.C[:] = 0.0
+    return st
+
+
+def build_bar(cfg: Config) -> State:
+    """Elastic bar of length L along x, fixed at x = 0, free at x = L (physics.md §4.4).
+
+    Initial velocity v₀ sin(πx/2L) along x (``scenario.velocity``); no gravity, no sidewall force.
+    """
+    g = cfg.geometry
+    h = cfg.grid.cell_size
+    spacing = h / cfg.grid.particles_per_cell
+    L = g.length
+    x, area = lattice(0.0, L, 0.0, g.depth, spacing)
+    nxc = int(math.ceil(L * (1 + g.headroom) / h))
+    gp = grid_record(
+        cfg, x0=-GHOST * h, nx=nxc + 2 * GHOST + 1, y0=-GHOST * h, ny=_ny(g.depth, h),
+        periodic=False, base="open", xlo="noslip", xhi="open", sidewall=False, gravity=False,
+    )  # fmt: skip
+    mp = pack_material(cfg)
+    vel = np.zeros_like(x)
+    vel[0] = cfg.scenario.velocity * np.sin(np.pi * x[0] / (2 * L))
+    return _points_state(cfg, x, area, gp, mp, np.zeros(x.shape[1]), velocity=vel)
+
+
+def build_collapse(cfg: Config) -> State:
+    """Column L₀ × H₀ against a wall at x = 0 on a rough base, domain [0, length] (physics.md §4.5)."""
+    g = cfg.geometry
+    h = cfg.grid.cell_size
+    spacing = h / cfg.grid.particles_per_cell
+    x, area = lattice(0.0, g.column_width, 0.0, g.column_height, spacing)
+    nxc = int(math.ceil(g.length / h))
+    gp = grid_record(
+        cfg, x0=-GHOST * h, nx=nxc + 2 * GHOST + 1, y0=-GHOST * h,
+        ny=_ny(g.column_height * (1 + g.headroom), h), periodic=False,
+        base=cfg.boundary.base, xlo=cfg.boundary.walls, xhi=cfg.boundary.walls,
+        x_hi_wall=nxc * h, sidewall=True,
+    )  # fmt: skip
+    mp = pack_material(cfg)
+    rho = cfg.material.solid_fraction * cfg.material.grain_density
+    p_yy = rho * (-gp[G_GY]) * (g.column_height - x[1])
+    return _points_state(cfg, x, area, gp, mp, p_yy)
+
+
+__all__ = ["BC_NOSLIP", "BC_OPEN", "build_bar", "build_box", "build_chute", "build_collapse"]
