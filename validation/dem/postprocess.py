@@ -25,9 +25,11 @@ Definitions
   velocity_x = free-solid-volume-weighted mean downslope velocity.
   n_particles = mean number of free-grain centres in the slab per snapshot.
 * Time averaging: profile at time T averages all dumps with |t - T| <= 0.25 s
-  (dumps are every 0.25 s, i.e. 3 snapshots; 2 at the last available time),
-  except T = 0 which uses the t = 0 snapshot only (static bed before the
-  tilt).  A time T is written only when its full window is available (or T
+  (dumps are every 0.25 s, i.e. 3 snapshots; 2 at the last available time).
+  T = 0 is the single snapshot theta0/settled_t0.dump.gz: the same random
+  mixture deposited at rest under gravity normal to the base (the
+  continuum model's initial state).  The production flow run instead
+  releases the random cloud under the tilted gravity at t = 0 (README).  A time T is written only when its full window is available (or T
   is the last target time and t >= T).  Bins with free solid fraction < 0.02
   are not written.
 """
@@ -50,7 +52,9 @@ MIN_FREE_FRACTION = 0.02
 
 
 def read_dump(path):
-    with open(path) as fh:
+    import gzip
+    opener = gzip.open if path.endswith(".gz") else open
+    with opener(path, "rt") as fh:
         lines = fh.readlines()
     t = None
     for i, ln in enumerate(lines):
@@ -204,7 +208,17 @@ def main():
         times = np.array([get(i)[0] for i in range(len(files))])
     tlast = float(times.max())
 
-    t0, d0 = get(int(np.argmin(np.abs(times))))
+    # t = 0 reference state: the bed deposited under gravity normal to the base
+    # (theta0/settled_t0.dump.gz, same glued layer and same random insertion).
+    # The production flow run starts from the released cloud instead (README).
+    theta0 = os.path.join(HERE, "theta0", "settled_t0.dump.gz")
+    if os.path.exists(theta0):
+        d0 = read_dump(theta0)[1]
+    else:
+        d0 = get(int(np.argmin(np.abs(times))))[1]
+    dflow0 = get(int(np.argmin(np.abs(times))))[1]
+    g0, g1 = d0["type"] == 3, dflow0["type"] == 3
+    assert np.allclose(d0["z"][g0], dflow0["z"][g1]), "glued layer differs between t=0 bed and flow run"
     glued = d0["type"] == 3
     zg = d0["z"][glued]
     z0 = float(zg.mean() + R_L)
@@ -217,8 +231,7 @@ def main():
 
     def window(T):
         if T == 0.0:
-            sel = np.where(np.abs(times) < 1e-9)[0]
-            complete = len(sel) == 1
+            return [-1], True
         else:
             sel = np.where(np.abs(times - T) <= HALF_WIN + 1e-9)[0]
             complete = (tlast >= T + HALF_WIN - 1e-9) or (T == PROFILE_TIMES[-1] and tlast >= T - 1e-9)
@@ -230,7 +243,7 @@ def main():
             sel, complete = window(T)
             if not complete or len(sel) == 0:
                 continue
-            snaps = [get(i)[1] for i in sel]
+            snaps = [d0 if i == -1 else get(i)[1] for i in sel]
             zmax = max(float((s["z"] + 0.5 * s["diameter"]).max()) for s in snaps)
             p = profile(snaps, z0, zmax)
             rows.append((T, len(sel), p))
@@ -243,13 +256,13 @@ def main():
 
     # overlap check on the settled bed (t = 0) and on the latest profile snapshot
     ov = {}
-    for label, i in (("t0_settled", int(np.argmin(np.abs(times)))), ("latest", int(np.argmax(times)))):
-        t, d = get(i)
+    for label, i in (("t0_settled", -1), ("latest", int(np.argmax(times)))):
+        d = d0 if i == -1 else get(i)[1]
         rel, zp, wrel = overlaps(d)
         base = zp < (z0 + 0.006)  # contacts in the bottom ~2 d_s above the datum, incl. with the glued layer
         def st(a, f):
             return float(f(a)) if len(a) else None
-        ov[label] = dict(time_s=float(times[i]), n_contacts=int(len(rel)),
+        ov[label] = dict(time_s=0.0 if i == -1 else float(times[i]), n_contacts=int(len(rel)),
                          mean_overlap_over_d=st(rel, np.mean), max_overlap_over_d=st(rel, np.max),
                          p99_overlap_over_d=st(rel, lambda a: np.percentile(a, 99)),
                          base_mean_overlap_over_d=st(rel[base], np.mean),
