@@ -226,3 +226,21 @@ def test_closures_give_expected_direction() -> None:
         si = segregation_index(py, vol0, phi)
         print(f"{name}: SI = {si:.3f}")
         assert si > 0.05, name
+
+
+def test_sidewall_chute_surface_layer_thickness() -> None:
+    """Seed chute, proxy A at κ = 1 (physics.md §2.4): a φ > 0.9 layer forms at the free surface,
+    1.35 mm thick after 0.1 s and 1.85 mm after 0.5 s (the spec's independent computation)."""
+    depth, s = 0.0375, 0.25e-3
+    px, py, vol0, cg, work = _column(0.012, depth, s, s, top_pad=0.3 * depth)
+    phi = np.full(px.size, 0.5)
+    prm = make_params("hill_tan_reduced", rho_bulk=RHO, eta=ETA, c_D=C_D, b_k_small=B_KS)
+    s_of_y = _sidewall_driver(depth, kappa=1.0)
+    t_done = 0.0
+    for t_end, expected in ((0.1, 1.35e-3), (0.5, 1.85e-3)):
+        _run(px, py, vol0, phi, cg, work, prm, t_end - t_done, 1e-3, s_of_y)
+        t_done = t_end
+        y, f = _layer_means(py, phi)
+        thickness = depth - (y[f <= 0.9].max() + 0.5 * s)
+        print(f"surface layer φ > 0.9 at t = {t_end} s: {1e3 * thickness:.2f} mm")
+        assert abs(thickness - expected) <= s  # within one cell
