@@ -3,7 +3,8 @@
 ``concentration_step`` advances the small-grain concentration φ^s_p of the material points over one
 subcycle of length t_int (physics.md §5.7):
 
-(i)   MP → grid with tent (bilinear) weights w_cp to the cell centres (Σ_c w_cp = 1):
+(i)   MP → grid with tent (bilinear) weights w_cp to the cell centres (Σ_c w_cp = 1), restricted
+      to the active cells (raw fill θ_c ≥ θ_min) and renormalised (``mp_weights``):
       V_c = Σ w V⁰_p, φ_c = Σ w V⁰_p φ_p / V_c, S_c and γ̇_c volume-weighted time averages,
       fill fraction θ_c = V_c / h_c²;
 (j)   explicit finite-volume update of φ_c with the closure's face velocity w and diffusivity D
@@ -17,6 +18,7 @@ subcycle of length t_int (physics.md §5.7):
 The closure coefficients (w, D and the face rates a, b) are evaluated once per call from the state
 at its start (S, γ̇ time-averaged over the subcycle; d̄ from φ_c) and frozen over the substeps.
 The scheme is then monotone for any coefficients, so boundedness holds exactly.
+Model, numerics and measured accuracy: docs/segregation.md.
 """
 
 from __future__ import annotations

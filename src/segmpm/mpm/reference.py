@@ -1,0 +1,200 @@
+"""Plain NumPy reference of one MPM step (APIC transfer), for testing the compiled loop.
+
+Slow and simple: every transfer is a vectorised gather or an ``np.add.at`` scatter. It follows
+the same algorithm as :func:`segmpm.mpm.step.advance` (P2G → grid update → G2P → USL stress
+update) so the two must agree to round-off.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..materials import material_update_np
+from .params import (
+    BC_FRICTION,
+    BC_NOSLIP,
+    BC_OPEN,
+    BC_SLIP,
+    G_BASE_KIND,
+    G_BASE_MU,
+    G_BASE_Y,
+    G_CFL,
+    G_DTMAX,
+    G_GX,
+    G_GY,
+    G_H,
+    G_LX,
+    G_NX,
+    G_NY,
+    G_PERIODIC,
+    G_RAMP,
+    G_SIDEWALL,
+    G_WALL_MU,
+    G_X0,
+    G_XHI,
+    G_XHI_KIND,
+    G_XLO,
+    G_XLO_KIND,
+    G_Y0,
+    S_DT,
+    S_NUMAX,
+    S_SMAX,
+    S_STEP,
+    S_TIME,
+    S_TSEG,
+)
+from .shape import bspline2_np
+
+
+def _plane_np(kind, mu, vn, vt):
+    vn = vn.copy()
+    vt = vt.copy()
+    if kind == BC_OPEN:
+        return vn, vt
+    if kind == BC_NOSLIP:
+        return np.zeros_like(vn), np.zeros_like(vt)
+    into = vn < 0
+    if kind == BC_SLIP:
+        vn[into] = 0.0
+        return vn, vt
+    assert kind == BC_FRICTION
+    dvn = np.where(into, -vn, 0.0)
+    stick = into & (np.abs(vt) <= mu * dvn)
+    slide = into & ~stick
+    vt[stick] = 0.0
+    vt[slide] -= mu * dvn[slide] * np.sign(vt[slide])
+    vn[into] = 0.0
+    return vn, vt
+
+
+def apply_bc_np(gp, xn, yn, vx, vy):
+    """Vectorised :func:`segmpm.mpm.boundary.apply_bc`."""
+    tol = 1e-9 * gp[G_H]
+    vx, vy = vx.copy(), vy.copy()
+    m = yn <= gp[G_BASE_Y] + tol
+    vy[m], vx[m] = _plane_np(int(gp[G_BASE_KIND]), gp[G_BASE_MU], vy[m], vx[m])
+    if gp[G_PERIODIC] == 0:
+        m = xn <= gp[G_XLO] + tol
+        vx[m], vy[m] = _plane_np(int(gp[G_XLO_KIND]), gp[G_WALL_MU], vx[m], vy[m])
+        m = xn >= gp[G_XHI] - tol
+        nvx, vy[m] = _plane_np(int(gp[G_XHI_KIND]), gp[G_WALL_MU], -vx[m], vy[m])
+        vx[m] = -nvx
+    return vx, vy
+
+
+def _stencil(gp, x):
+    h = gp[G_H]
+    bx, wx, dx = bspline2_np((x[0] - gp[G_X0]) / h)
+    by, wy, dy = bspline2_np((x[1] - gp[G_Y0]) / h)
+    a = np.arange(3)
+    ixu = bx[:, None] + a  # (N, 3)
+    iy = by[:, None] + a
+    ix = ixu % int(gp[G_NX]) if gp[G_PERIODIC] else ixu
+    ddx = ixu * h + gp[G_X0] - x[0][:, None]
+    ddy = iy * h + gp[G_Y0] - x[1][:, None]
+    IX = np.broadcast_to(ix[:, :, None], (len(bx), 3, 3))
+    IY = np.broadcast_to(iy[:, None, :], (len(bx), 3, 3))
+    W = wx[:, :, None] * wy[:, None, :]
+    GX = (dx / h)[:, :, None] * wy[:, None, :]
+    GY = wx[:, :, None] * (dy / h)[:, None, :]
+    DX = np.broadcast_to(ddx[:, :, None], W.shape)
+    DY = np.broadcast_to(ddy[:, None, :], W.shape)
+    return IX, IY, W, GX, GY, DX, DY
+
+
+def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> dict[str, np.ndarray]:
+    """One step of the APIC/USL algorithm on copies of the state arrays; returns the new ones."""
+    s = {k: np.array(v, dtype=np.float64, copy=True) for k, v in arrays.items()}
+    x, v, C, sig = s["x"], s["v"], s["C"], s["sig"]
+    sc = s["sc"]
+    h = gp[G_H]
+    nx, ny = int(gp[G_NX]), int(gp[G_NY])
+    dt = gp[G_DTMAX]
+    if sc[S_SMAX] > 0:
+        dt = min(dt, gp[G_CFL] * h / sc[S_SMAX])
+    if sc[S_NUMAX] > 0:
+        dt = min(dt, gp[G_CFL] * h * h / (2 * sc[S_NUMAX]))
+    t = sc[S_TIME]
+    ramp = min(1.0, (t + dt) / gp[G_RAMP]) if gp[G_RAMP] > 0 else 1.0
+
+    IX, IY, W, GX, GY, DX, DY = _stencil(gp, x)
+    m = s["mass"][:, None, None]
+    vol = (s["vol0"] * s["J"])[:, None, None]
+    rho = s["mass"][:, None, None] / vol
+    gm = np.zeros((nx, ny))
+    gmx = np.zeros((nx, ny))
+    gmy = np.zeros((nx, ny))
+    gfx = np.zeros((nx, ny))
+    gfy = np.zeros((nx, ny))
+    gmp = np.zeros((nx, ny))
+    gmr = np.zeros((nx, ny))
+    mw = m * W
+    np.add.at(gm, (IX, IY), mw)
+    c = C[:, :, None, None]
+    np.add.at(gmx, (IX, IY), mw * (v[0][:, None, None] + c[0] * DX + c[1] * DY))
+    np.add.at(gmy, (IX, IY), mw * (v[1][:, None, None] + c[2] * DX + c[3] * DY))
+    sxx, syy, sxy = (sig[k][:, None, None] for k in range(3))
+    np.add.at(gfx, (IX, IY), -vol * (sxx * GX + sxy * GY))
+    np.add.at(gfy, (IX, IY), -vol * (sxy * GX + syy * GY))
+    np.add.at(gmp, (IX, IY), mw * s["diag"][0][:, None, None])
+    np.add.at(gmr, (IX, IY), mw * rho)
+
+    has = gm > 0
+    safe = np.where(has, gm, 1.0)
+    vx = gmx / safe + dt * (gfx / safe + gp[G_GX] * ramp)
+    vy = gmy / safe + dt * (gfy / safe + gp[G_GY])
+    sw = gp[G_SIDEWALL] * ramp
+    if sw > 0:
+        pn = gmp / safe
+        act = has & (pn > 0)
+        dvmax = np.where(act, dt * sw * pn / np.where(act, gmr / safe, 1.0), 0.0)
+        speed = np.hypot(vx, vy)
+        f = np.where(speed <= dvmax, 0.0, 1.0 - dvmax / np.where(speed > 0, speed, 1.0))
+        vx = np.where(act, vx * f, vx)
+        vy = np.where(act, vy * f, vy)
+    XN, YN = np.meshgrid(gp[G_X0] + np.arange(nx) * h, gp[G_Y0] + np.arange(ny) * h, indexing="ij")
+    bx_, by_ = apply_bc_np(gp, XN.ravel(), YN.ravel(), vx.ravel(), vy.ravel())
+    gvx = np.where(has, bx_.reshape(nx, ny), 0.0)
+    gvy = np.where(has, by_.reshape(nx, ny), 0.0)
+
+    ux = gvx[IX, IY]
+    uy = gvy[IX, IY]
+    vpx = np.sum(W * ux, axis=(1, 2))
+    vpy = np.sum(W * uy, axis=(1, 2))
+    k = 4.0 / h**2
+    C[0] = k * np.sum(W * ux * DX, axis=(1, 2))
+    C[1] = k * np.sum(W * ux * DY, axis=(1, 2))
+    C[2] = k * np.sum(W * uy * DX, axis=(1, 2))
+    C[3] = k * np.sum(W * uy * DY, axis=(1, 2))
+    L = np.empty((len(vpx), 2, 2))
+    L[:, 0, 0] = np.sum(ux * GX, axis=(1, 2))
+    L[:, 0, 1] = np.sum(ux * GY, axis=(1, 2))
+    L[:, 1, 0] = np.sum(uy * GX, axis=(1, 2))
+    L[:, 1, 1] = np.sum(uy * GY, axis=(1, 2))
+    v[0], v[1] = vpx, vpy
+    x[0] += dt * vpx
+    x[1] += dt * vpy
+    if gp[G_PERIODIC]:
+        x[0] = np.where(
+            x[0] >= gp[G_LX], x[0] - gp[G_LX], np.where(x[0] < 0, x[0] + gp[G_LX], x[0])
+        )
+    s["J"] = s["J"] * (
+        (1 + dt * L[:, 0, 0]) * (1 + dt * L[:, 1, 1]) - dt**2 * L[:, 0, 1] * L[:, 1, 0]
+    )
+    eps_new, sig_new, p, gdot, inert, S, cw, nu = material_update_np(
+        mp, L, dt, s["eps"].T, s["J"], s["phi"]
+    )
+    s["eps"] = eps_new.T.copy()
+    s["sig"] = sig_new.T.copy()
+    s["diag"][0], s["diag"][1], s["diag"][2], s["diag"][3] = p, gdot, inert, S
+    s["diag"][4] = cw + np.hypot(vpx, vpy)
+    s["diag"][5] = nu
+    s["s_int"] += S * dt
+    s["g_int"] += gdot * dt
+    sc[S_TIME] = t + dt
+    sc[S_STEP] += 1
+    sc[S_DT] = dt
+    sc[S_TSEG] += dt
+    sc[S_SMAX] = s["diag"][4].max()
+    sc[S_NUMAX] = s["diag"][5].max()
+    return s

@@ -1,0 +1,91 @@
+"""Configuration validation and the command line: every invalid input exits 2 naming the key."""
+
+from __future__ import annotations
+
+import tomllib
+
+import pytest
+
+from segmpm.cli import main
+from segmpm.config import ConfigError, load_config
+
+
+def _write(tmp_path, text: str):
+    p = tmp_path / "case.toml"
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize(
+    "text, key, fragment",
+    [
+        ("[geometry]\nslop_deg = 20\n", "geometry.slop_deg", "unknown key"),
+        ("[geometri]\nslope_deg = 20\n", "geometri", "unknown section"),
+        ("[geometry]\nslope_deg = 'steep'\n", "geometry.slope_deg", "'steep'"),
+        ("[geometry]\nslope_deg = 95.0\n", "geometry.slope_deg", "< 90"),
+        ("[mixture]\nphi_small_initial = 1.5\n", "mixture.phi_small_initial", "≤ 1"),
+        ("[grid]\ncell_size = -0.001\n", "grid.cell_size", "> 0"),
+        ("[time]\nend = nan\n", "time.end", "nan"),
+        ("[segregation]\nmodel = 'magic'\n", "segregation.model", "hill_tan_reduced"),
+        ("[geometry]\nlength = 0.0123\n", "geometry.length", "whole number"),
+        ("[grid]\ncell_size = 1e-7\n", "grid.cell_size", "material points"),
+        ("[output]\nprofile_times = [1.0, 0.5]\n", "output.profile_times", "increasing"),
+        ("[geometry\nslope_deg = 20\n", "case.toml", "not valid TOML"),
+    ],
+)
+def test_validate_rejects_with_key_named(tmp_path, capsys, text, key, fragment):
+    path = _write(tmp_path, text)
+    assert main(["validate", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert key in err and fragment in err, err
+    assert "Traceback" not in err
+    # `run` refuses the same file before starting
+    assert main(["run", str(path), "--out", str(tmp_path / "o")]) == 2
+    assert not (tmp_path / "o" / "run.json").exists()
+
+
+def test_missing_file_exit_2(tmp_path, capsys):
+    assert main(["validate", str(tmp_path / "nope.toml")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "override, fragment",
+    [
+        ("geometry.slope_deg", "section.key=value"),
+        ("slope_deg=20", "section.key"),
+        ("nosuch.key=1", "unknown section 'nosuch'"),
+        ("geometry.depth=", "missing value"),
+        ("geometry.depth=[1,", "not valid TOML"),
+        ("geometry.depth=-1", "geometry.depth"),
+        ("material.stiffness_scale=0", "material.stiffness_scale"),
+        ("time.cfl=2", "time.cfl"),
+    ],
+)
+def test_bad_overrides_exit_2(capsys, override, fragment):
+    assert main(["run", "--set", override, "--out", "/tmp/segmpm-never"]) == 2
+    err = capsys.readouterr().err
+    assert fragment in err, err
+
+
+def test_validate_prints_resolved_configuration(tmp_path, capsys):
+    path = _write(tmp_path, "[geometry]\nslope_deg = 24.0\n")
+    assert main(["validate", str(path), "--set", "time.end=0.5"]) == 0
+    out = capsys.readouterr().out
+    data = tomllib.loads(out)
+    assert data["geometry"]["slope_deg"] == 24.0
+    assert data["time"]["end"] == 0.5
+    assert data["material"]["A"] == 1.79e9  # defaults are filled in
+
+
+def test_overrides_apply_before_validation():
+    cfg = load_config(overrides=["geometry.slope_deg=24", "segregation.model=none"])
+    assert cfg.geometry.slope_deg == 24 and cfg.segregation.model == "none"
+    with pytest.raises(ConfigError, match="geometry.slope_deg"):
+        load_config(overrides=["geometry.slope_deg=90"])
+
+
+def test_help_and_version(capsys):
+    assert main(["--help"]) == 0
+    assert "segmpm" in capsys.readouterr().out
+    assert main([]) == 0
