@@ -10,7 +10,8 @@ subcycle of length t_int (physics.md §5.7):
 (j)   explicit finite-volume update of φ_c with the closure's face velocity w and diffusivity D
       (closures.py) and the Scharfetter–Gummel (or upwind + central) face flux; faces that touch an
       inactive cell (θ < θ_min) and the domain edges carry no flux; substeps of
-      Δt_c = safety · min_c θ_c h_c / Σ_faces max(a_f, b_f) (≤ θ_min h_c/(2 max|w| + 2D/h_c) in 1-D);
+      Δt_c = safety · min_c θ_c h_c / Σ_faces max(a_f, b_f) (a cell-wise form of the bound
+      θ_min h_c/(2 max|w| + 2D/h_c) of physics.md §5.7, to which it reduces in 1-D);
 (k)   grid → MP incremental, bound-preserving mapping Δφ_p = Σ_c w_cp ω_cp Δφ_c with
       ω_cp = (1 − φ_p)/(1 − φ_c) if Δφ_c > 0, φ_p/φ_c otherwise; this conserves Σ_p V⁰_p φ_p
       and keeps 0 ≤ φ_p ≤ 1.
