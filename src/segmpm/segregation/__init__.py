@@ -6,7 +6,13 @@ per subcycle; :mod:`closures` holds the flux closures and the parameter vector l
 used between output chunks. Model and numerics: docs/segregation.md.
 """
 
-from segmpm.segregation.closures import MODEL_CODES, N_PARAMS, make_params, pack_params
+from segmpm.segregation.closures import (
+    MODEL_CODES,
+    N_PARAMS,
+    conc_cell_size,
+    make_params,
+    pack_params,
+)
 from segmpm.segregation.grid import ConcGrid, allocate_work, concentration_step, make_conc_grid
 
 __all__ = [
@@ -14,6 +20,7 @@ __all__ = [
     "N_PARAMS",
     "ConcGrid",
     "allocate_work",
+    "conc_cell_size",
     "concentration_step",
     "make_conc_grid",
     "make_params",
