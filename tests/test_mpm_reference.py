@@ -12,6 +12,8 @@ from segmpm.state import STATE_ARRAYS
 
 CASES = {
     "chute-fei": ["geometry.length=0.003", "geometry.depth=0.004", "material.stiffness_scale=1e-3"],
+    "chute-fei-apic": ["geometry.length=0.003", "geometry.depth=0.004", "grid.transfer='apic'",
+                       "material.stiffness_scale=1e-3", "boundary.ramp_time=0.1"],
     "chute-slip-elastic": [
         "geometry.length=0.003", "geometry.depth=0.004", "material.model='linear_elastic'",
         "boundary.base='friction'", "boundary.base_friction=0.3",

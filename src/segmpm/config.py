@@ -71,9 +71,10 @@ class GridConfig(_Section):
     particles_per_cell: Annotated[int, Field(ge=1, le=6)] = 2
     #: shape functions: quadratic B-splines.
     shape: Literal["bspline2"] = "bspline2"
-    #: particle–grid transfer: APIC (default) or MUSL with a FLIP/PIC blend.
-    transfer: Literal["apic", "flip"] = "apic"
-    #: FLIP fraction of the FLIP/PIC blend (transfer = "flip").
+    #: particle–grid transfer: "aflip" (APIC affine momentum with a FLIP velocity update, the
+    #: default; docs/model.md explains why), "apic", or "flip" (MUSL with a FLIP/PIC blend).
+    transfer: Literal["aflip", "apic", "flip"] = "aflip"
+    #: FLIP fraction α of the velocity update (transfer = "aflip" or "flip").
     flip_fraction: Fraction = 0.99
     #: threads for the compiled loop (0 = numba's default). Results do not depend on it.
     threads: Annotated[int, Field(ge=0, le=256)] = 0

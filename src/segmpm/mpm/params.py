@@ -12,7 +12,8 @@ BC_FRICTION = 3
 BC_CODES = {"open": BC_OPEN, "noslip": BC_NOSLIP, "slip": BC_SLIP, "friction": BC_FRICTION}
 
 TRANSFER_APIC = 0
-TRANSFER_FLIP = 1
+TRANSFER_FLIP = 1  # MUSL with a FLIP/PIC blend
+TRANSFER_AFLIP = 2  # APIC affine transfer with a FLIP velocity update (Fei et al. 2021)
 
 (
     G_X0,  # x of node (0, ·), m

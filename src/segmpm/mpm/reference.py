@@ -1,4 +1,4 @@
-"""Plain NumPy reference of one MPM step (APIC transfer), for testing the compiled loop.
+"""Plain NumPy reference of one MPM step (APIC and AFLIP transfers), for testing the compiled loop.
 
 Slow and simple: every transfer is a vectorised gather or an ``np.add.at`` scatter. It follows
 the same algorithm as :func:`segmpm.mpm.step.advance` (P2G → grid update → G2P → USL stress
@@ -20,6 +20,7 @@ from .params import (
     G_BASE_Y,
     G_CFL,
     G_DTMAX,
+    G_FLIP,
     G_GX,
     G_GY,
     G_H,
@@ -29,6 +30,7 @@ from .params import (
     G_PERIODIC,
     G_RAMP,
     G_SIDEWALL,
+    G_TRANSFER,
     G_WALL_MU,
     G_X0,
     G_XHI,
@@ -42,6 +44,8 @@ from .params import (
     S_STEP,
     S_TIME,
     S_TSEG,
+    TRANSFER_AFLIP,
+    TRANSFER_APIC,
 )
 from .shape import bspline2_np
 
@@ -141,8 +145,9 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
 
     has = gm > 0
     safe = np.where(has, gm, 1.0)
-    vx = gmx / safe + dt * (gfx / safe + gp[G_GX] * ramp)
-    vy = gmy / safe + dt * (gfy / safe + gp[G_GY])
+    vox, voy = gmx / safe, gmy / safe
+    vx = vox + dt * (gfx / safe + gp[G_GX] * ramp)
+    vy = voy + dt * (gfy / safe + gp[G_GY])
     sw = gp[G_SIDEWALL] * ramp
     if sw > 0:
         pn = gmp / safe
@@ -156,6 +161,9 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
     bx_, by_ = apply_bc_np(gp, XN.ravel(), YN.ravel(), vx.ravel(), vy.ravel())
     gvx = np.where(has, bx_.reshape(nx, ny), 0.0)
     gvy = np.where(has, by_.reshape(nx, ny), 0.0)
+    ox_, oy_ = apply_bc_np(gp, XN.ravel(), YN.ravel(), vox.ravel(), voy.ravel())
+    gox = np.where(has, ox_.reshape(nx, ny), 0.0)
+    goy = np.where(has, oy_.reshape(nx, ny), 0.0)
 
     ux = gvx[IX, IY]
     uy = gvy[IX, IY]
@@ -171,7 +179,14 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
     L[:, 0, 1] = np.sum(ux * GY, axis=(1, 2))
     L[:, 1, 0] = np.sum(uy * GX, axis=(1, 2))
     L[:, 1, 1] = np.sum(uy * GY, axis=(1, 2))
-    v[0], v[1] = vpx, vpy
+    if gp[G_TRANSFER] == TRANSFER_AFLIP:
+        a = gp[G_FLIP]
+        dvx = vpx - np.sum(W * gox[IX, IY], axis=(1, 2))
+        dvy = vpy - np.sum(W * goy[IX, IY], axis=(1, 2))
+        v[0], v[1] = a * (v[0] + dvx) + (1 - a) * vpx, a * (v[1] + dvy) + (1 - a) * vpy
+    else:
+        assert gp[G_TRANSFER] == TRANSFER_APIC, "the reference implements APIC and AFLIP"
+        v[0], v[1] = vpx, vpy
     x[0] += dt * vpx
     x[1] += dt * vpy
     if gp[G_PERIODIC]:
@@ -187,7 +202,7 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
     s["eps"] = eps_new.T.copy()
     s["sig"] = sig_new.T.copy()
     s["diag"][0], s["diag"][1], s["diag"][2], s["diag"][3] = p, gdot, inert, S
-    s["diag"][4] = cw + np.hypot(vpx, vpy)
+    s["diag"][4] = cw + np.hypot(v[0], v[1])
     s["diag"][5] = nu
     s["s_int"] += S * dt
     s["g_int"] += gdot * dt

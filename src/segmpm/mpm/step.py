@@ -37,6 +37,7 @@ from .params import (
     ST_LEFT_GRID,
     ST_NONFINITE,
     ST_OK,
+    TRANSFER_AFLIP,
     TRANSFER_FLIP,
 )
 from .transfer import gather_point, grid_update, momentum_to_velocity, p2g, sort_into_strips
@@ -65,6 +66,7 @@ def update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_
     """
     n = x.shape[1]
     flip = gp[G_TRANSFER] == TRANSFER_FLIP
+    aflip = gp[G_TRANSFER] == TRANSFER_AFLIP
     alpha = gp[G_FLIP]
     lx = gp[G_LX]
     periodic = gp[G_PERIODIC] != 0.0
@@ -78,8 +80,13 @@ def update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_
             v[0, p] = nvx
             v[1, p] = nvy
         else:
-            v[0, p] = vx
-            v[1, p] = vy
+            if aflip:
+                ox, oy, _, _, _, _, _, _, _, _ = gather_point(p, x, gp, gv_old)
+                v[0, p] = alpha * (v[0, p] + vx - ox) + (1.0 - alpha) * vx
+                v[1, p] = alpha * (v[1, p] + vy - oy) + (1.0 - alpha) * vy
+            else:
+                v[0, p] = vx
+                v[1, p] = vy
             C[0, p] = c00
             C[1, p] = c01
             C[2, p] = c10

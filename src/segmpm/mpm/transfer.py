@@ -116,7 +116,7 @@ def grid_update(gp, grid, gv, gv_old, dt, ramp, sidewall_on):
     """Nodal velocities: v* = (m v + Δt (f + m g))/m, sidewall friction, then boundaries.
 
     ``ramp`` ∈ [0, 1] scales the tangential gravity and the sidewall force (start-up ramp).
-    ``gv_old`` receives m v / m before the update (FLIP).
+    ``gv_old`` receives m v / m before the update, with the same boundary conditions (FLIP).
     """
     nx = grid.shape[0]
     ny = grid.shape[1]
@@ -147,6 +147,10 @@ def grid_update(gp, grid, gv, gv_old, dt, ramp, sidewall_on):
                     vx, vy = sidewall_friction(vx, vy, dt * sw * pn / rn)
             yn = y0 + j * h
             vx, vy = apply_bc(gp, xn, yn, vx, vy)
+            # the boundary also constrains the old velocity, so that the FLIP increment on a
+            # constrained node is only the physical change: otherwise zeroing a node's projected
+            # velocity every step would act as a drag ∝ 1/Δt on the points near the wall
+            vox, voy = apply_bc(gp, xn, yn, vox, voy)
             gv[i, j, 0] = vx
             gv[i, j, 1] = vy
             gv_old[i, j, 0] = vox

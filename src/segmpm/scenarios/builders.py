@@ -44,6 +44,7 @@ from ..mpm.params import (
     G_XLO,
     G_XLO_KIND,
     G_Y0,
+    TRANSFER_AFLIP,
     TRANSFER_APIC,
     TRANSFER_FLIP,
 )
@@ -110,7 +111,9 @@ def grid_record(
     gp[G_CFL] = cfg.time.cfl
     gp[G_DTMAX] = cfg.time.dt_max
     gp[G_DTMIN] = cfg.time.dt_min
-    gp[G_TRANSFER] = TRANSFER_FLIP if cfg.grid.transfer == "flip" else TRANSFER_APIC
+    gp[G_TRANSFER] = {"apic": TRANSFER_APIC, "flip": TRANSFER_FLIP, "aflip": TRANSFER_AFLIP}[
+        cfg.grid.transfer
+    ]
     gp[G_FLIP] = cfg.grid.flip_fraction
     return gp
 
