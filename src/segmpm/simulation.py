@@ -113,7 +113,7 @@ class Simulation:
             st.x, st.v, st.C, st.mass, st.vol0, st.J, st.eps, st.sig, st.phi, st.diag,
             st.s_int, st.g_int, st.gp, st.mp, st.sc, w["grid"], w["gv"], w["gv_old"],
             w["strip_start"], w["cursor"], w["order"], w["flags"], w["x_old"],
-            float(t_stop), int(max_steps),
+            st.seg_prm, st.cg, st.seg_work, float(t_stop), int(max_steps),
         )  # fmt: skip
         self.wall_time += _time.perf_counter() - t0
         return int(status), int(idx), int(n)

@@ -24,6 +24,7 @@ sc         (S_NSLOTS) scalar state: time, steps, Δt, … (mpm.params S_*)
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -56,6 +57,10 @@ class State:
     gp: np.ndarray
     mp: np.ndarray
     work: dict[str, np.ndarray] = field(default_factory=dict)
+    #: segregation: parameter record (segregation.closures ``P_*``), concentration grid, scratch
+    seg_prm: np.ndarray | None = None
+    cg: Any = None
+    seg_work: tuple = ()
 
     @property
     def n(self) -> int:
@@ -111,6 +116,10 @@ class State:
             "flags": np.zeros(n, dtype=np.int64),
             "x_old": np.zeros((2, n)),
         }
+        if self.cg is not None:
+            from .segregation import allocate_work
+
+            self.seg_work = allocate_work(self.cg)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The physical state arrays (no work arrays)."""

@@ -13,6 +13,8 @@ import numpy as np
 from numba import njit, prange
 
 from ..materials import material_update
+from ..segregation.closures import P_DT_TARGET, P_MODEL
+from ..segregation.grid import concentration_step
 from .params import (
     G_CFL,
     G_DTMAX,
@@ -28,6 +30,7 @@ from .params import (
     G_X0,
     G_Y0,
     S_DT,
+    S_NSEG,
     S_NUMAX,
     S_SMAX,
     S_STEP,
@@ -181,9 +184,12 @@ def _check(x, v, J, sig, diag, flags):
 def advance(
     x, v, C, mass, vol0, J, eps, sig, phi, diag, s_int, g_int,
     gp, mp, sc, grid, gv, gv_old, strip_start, cursor, order, flags, x_old,
-    t_stop, max_steps,
+    seg_prm, cg, seg_work, t_stop, max_steps,
 ):  # fmt: skip
     """Advance the state to ``t_stop`` (exactly) or by ``max_steps`` steps, whichever comes first.
+
+    Every time the accumulated time reaches the segregation subcycle (``seg_prm[P_DT_TARGET]``),
+    one concentration step (seed Fig. 1 i–k) runs on the extra grid with the time-averaged driver.
 
     ``sc`` holds the scalar state (time, step counter, last Δt, …; see mpm.params ``S_*``).
     Returns (status, point index, steps taken); status ST_OK or the reason the loop stopped.
@@ -230,6 +236,15 @@ def advance(
         sc[S_NUMAX] = numax
         if status != ST_OK:
             return status, idx, steps
+        if sc[S_TSEG] >= seg_prm[P_DT_TARGET] * (1.0 - 1e-12):
+            if seg_prm[P_MODEL] != 0.0:
+                concentration_step(x[0], x[1], vol0, phi, s_int, g_int, sc[S_TSEG], cg, seg_prm,
+                                   seg_work)  # fmt: skip
+                sc[S_NSEG] += 1.0
+            else:
+                s_int[:] = 0.0
+                g_int[:] = 0.0
+            sc[S_TSEG] = 0.0
     return ST_OK, -1, steps
 
 

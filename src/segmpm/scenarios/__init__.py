@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from ..config import Config
 from ..state import State
-from .builders import build_bar, build_box, build_chute, build_collapse
+from .builders import attach_segregation, build_bar, build_box, build_chute, build_collapse
 
 BUILDERS = {
     "chute": build_chute,
@@ -15,8 +15,10 @@ BUILDERS = {
 
 
 def build(cfg: Config) -> State:
-    """Initial state of the scenario ``cfg.scenario.kind``."""
-    return BUILDERS[cfg.scenario.kind](cfg)
+    """Initial state of the scenario ``cfg.scenario.kind``, with its concentration grid."""
+    st = BUILDERS[cfg.scenario.kind](cfg)
+    attach_segregation(cfg, st)
+    return st
 
 
 __all__ = ["build", "BUILDERS"]

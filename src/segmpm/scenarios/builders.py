@@ -228,3 +228,30 @@ def build_collapse(cfg: Config) -> State:
 
 
 __all__ = ["BC_NOSLIP", "BC_OPEN", "build_bar", "build_box", "build_chute", "build_collapse"]
+
+
+def attach_segregation(cfg: Config, st: State) -> None:
+    """The extra Eulerian concentration grid over the whole MPM grid, and its parameters.
+
+    The grid spans the MPM grid (periodic with the same period, or between the outer nodes), from
+    the base (y = 0) to the top node, with cells of ``segregation.cell_size`` (default h/2).
+    """
+    from ..segregation import conc_cell_size, make_conc_grid, pack_params
+
+    gp = st.gp
+    h = gp[G_H]
+    hc = conc_cell_size(cfg)
+    periodic = gp[G_PERIODIC] != 0.0
+    if periodic:
+        x_lo, x_hi = 0.0, gp[G_LX]
+        # the periodic length must hold a whole number of concentration cells
+        n = x_hi / hc
+        if abs(n - round(n)) > 1e-6 * max(1.0, n):
+            hc = x_hi / max(1, round(n))
+    else:
+        x_lo, x_hi = gp[G_X0] + h, gp[G_X0] + (gp[G_NX] - 2) * h
+    y_lo = min(0.0, float(np.min(st.x[1])) if st.n else 0.0)
+    y_hi = gp[G_Y0] + (gp[G_NY] - 1) * h
+    st.cg = make_conc_grid(x_lo, x_hi, y_lo, y_hi, hc, periodic)
+    st.seg_prm = pack_params(cfg, (gp[G_GX], gp[G_GY]))
+    st.allocate_work()
