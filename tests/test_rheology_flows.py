@@ -86,7 +86,7 @@ def test_stiffness_scale_does_not_change_the_flow():
     H, h = 0.006, 5e-4
     surf = {s: chute_run(26.0, H, 0.0, s, h, 0.45)[1][-1] for s in (1.0, 1e-2, 1e-3)}
     ref = surf[1.0]
-    for s, v in surf.items():
+    for v in surf.values():
         assert abs(v / ref - 1) < 0.01, surf
     side = {s: chute_run(26.0, 0.012, 0.3, s, h, 0.8)[1][-1] for s in (1e-2, 1e-3)}
     assert abs(side[1e-2] / side[1e-3] - 1) < 0.01, side

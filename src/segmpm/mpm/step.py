@@ -43,7 +43,14 @@ from .params import (
     TRANSFER_AFLIP,
     TRANSFER_FLIP,
 )
-from .transfer import gather_point, grid_update, momentum_to_velocity, p2g, sort_into_strips
+from .transfer import (
+    gather_old,
+    gather_point,
+    grid_update,
+    momentum_to_velocity,
+    p2g,
+    sort_into_strips,
+)
 
 
 @njit(cache=True, inline="always")
@@ -76,7 +83,7 @@ def update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_
     for p in prange(n):
         vx, vy, c00, c01, c10, c11, l00, l01, l10, l11 = gather_point(p, x, gp, gv)
         if flip:
-            ox, oy, _, _, _, _, _, _, _, _ = gather_point(p, x, gp, gv_old)
+            ox, oy = gather_old(p, x, gp, gv_old)
             nvx = alpha * (v[0, p] + vx - ox) + (1.0 - alpha) * vx
             nvy = alpha * (v[1, p] + vy - oy) + (1.0 - alpha) * vy
             # MUSL: the strain rate comes from the remapped momenta (second pass, see advance)
@@ -84,7 +91,7 @@ def update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_
             v[1, p] = nvy
         else:
             if aflip:
-                ox, oy, _, _, _, _, _, _, _, _ = gather_point(p, x, gp, gv_old)
+                ox, oy = gather_old(p, x, gp, gv_old)
                 v[0, p] = alpha * (v[0, p] + vx - ox) + (1.0 - alpha) * vx
                 v[1, p] = alpha * (v[1, p] + vy - oy) + (1.0 - alpha) * vy
             else:

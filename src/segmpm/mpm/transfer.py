@@ -178,6 +178,30 @@ def momentum_to_velocity(gp, grid, gv):
 
 
 @njit(cache=True, inline="always")
+def gather_old(p, x, gp, gv_old):
+    """Σ w v_i^old at point p (the FLIP increment's old nodal velocity)."""
+    h = gp[G_H]
+    x0 = gp[G_X0]
+    y0 = gp[G_Y0]
+    nx = int(gp[G_NX])
+    periodic = gp[G_PERIODIC] != 0.0
+    bx, wx0, wx1, wx2, _, _, _ = bspline2((x[0, p] - x0) / h)
+    by, wy0, wy1, wy2, _, _, _ = bspline2((x[1, p] - y0) / h)
+    wx = (wx0, wx1, wx2)
+    wy = (wy0, wy1, wy2)
+    ox = 0.0
+    oy = 0.0
+    for a in range(3):
+        ixu = bx + a
+        ix = ixu % nx if periodic else ixu
+        for b in range(3):
+            w = wx[a] * wy[b]
+            ox += w * gv_old[ix, by + b, 0]
+            oy += w * gv_old[ix, by + b, 1]
+    return ox, oy
+
+
+@njit(cache=True, inline="always")
 def gather_point(p, x, gp, gv):
     """Σ w v_i, APIC C_p = (4/h²) Σ w v_i (x_i − x_p)ᵀ and L_p = Σ v_i ⊗ ∇w_ip at point p."""
     h = gp[G_H]
