@@ -234,6 +234,8 @@ class Simulation:
             vtk.restore(self.time)
         else:
             write_text(out / "config.toml", cfg.to_toml())
+            self._prime()
+            self.save_checkpoint(ckpt_path)  # a last good state exists from the start
         show = cfg.output.progress if progress is None else progress
         end = cfg.time.end
         out_times = [t for t in cfg.output.profile_times if t <= end + 1e-12]
@@ -275,6 +277,7 @@ class Simulation:
                     if target >= next_ckpt - 1e-12:
                         self.save_checkpoint(ckpt_path)
                         next_ckpt += ckpt_dt
+                    self._write_runinfo("running", None)
             status = "completed"
             self.save_checkpoint(ckpt_path)
         except SimulationError as err:

@@ -1,0 +1,138 @@
+"""Checkpoint/resume equality, signals, numerical failure, atomic writes, determinism."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from segmpm.cli import main
+
+SMALL = [
+    "geometry.depth=0.006", "geometry.length=0.002", "time.end=0.5",
+    "output.profile_times=[0.0,0.1,0.25,0.5]", "output.checkpoint_interval=0.1",
+    "output.fields=false", "output.figures=false", "output.progress=false",
+    "time.chunk_steps=50",
+]  # fmt: skip
+
+
+def _args(*extra):
+    out = []
+    for s in (*SMALL, *extra):
+        out += ["--set", s]
+    return out
+
+
+def _profiles(path: Path) -> xr.Dataset:
+    with xr.open_dataset(path / "profiles.nc", engine="h5netcdf") as ds:
+        return ds.load()
+
+
+def _segmpm(args, **kw):
+    return subprocess.Popen([sys.executable, "-m", "segmpm.cli", *args], **kw)
+
+
+@pytest.fixture(scope="module")
+def reference_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref")
+    assert main(["run", "--out", str(out), *_args()]) == 0
+    return out
+
+
+def test_same_configuration_same_result(reference_run, tmp_path):
+    assert main(["run", "--out", str(tmp_path), *_args()]) == 0
+    a, b = _profiles(reference_run), _profiles(tmp_path)
+    for k in a.data_vars:
+        np.testing.assert_array_equal(a[k].values, b[k].values, err_msg=k)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT, signal.SIGKILL])
+def test_interrupt_then_resume_gives_the_same_result(reference_run, tmp_path, sig):
+    out = tmp_path / "run"
+    proc = _segmpm(["run", "--out", str(out), *_args()], stderr=subprocess.PIPE)
+    # wait until the run has passed its first checkpoint, then interrupt at an arbitrary step
+    deadline = time.time() + 300
+    while time.time() < deadline:
+        info = out / "run.json"
+        if (out / "checkpoint" / "state.npz").exists() and info.exists():
+            t = json.loads(info.read_text())["time"]
+            if t >= 0.1:
+                break
+        if proc.poll() is not None:
+            pytest.skip("the run finished before it could be interrupted")
+        time.sleep(0.05)
+    time.sleep(np.random.default_rng().uniform(0.05, 0.5))  # an arbitrary step
+    proc.send_signal(sig)
+    rc = proc.wait(timeout=120)
+    if rc == 0:
+        pytest.skip("the run finished before the signal arrived")
+    if sig == signal.SIGKILL:
+        assert rc == -signal.SIGKILL
+    else:
+        assert rc == 130, proc.stderr.read().decode()
+        assert json.loads((out / "run.json").read_text())["status"] == "interrupted"
+    # every output on disk is readable (nothing half-written)
+    _profiles(out)
+    res = subprocess.run([sys.executable, "-m", "segmpm.cli", "run", "--resume", "--out", str(out)],
+                         capture_output=True, timeout=600)  # fmt: skip
+    assert res.returncode == 0, res.stderr.decode()
+    a, b = _profiles(reference_run), _profiles(out)
+    np.testing.assert_array_equal(a["time"].values, b["time"].values)
+    for k in a.data_vars:
+        np.testing.assert_array_equal(a[k].values, b[k].values, err_msg=k)
+    assert json.loads((out / "run.json").read_text())["status"] == "completed"
+
+
+def test_time_step_collapse_exits_3_with_diagnostic(tmp_path, capsys):
+    # the stable step (≈ 7 µs here) is below the configured floor: the run must stop, not crawl
+    rc = main(["run", "--out", str(tmp_path), *_args("time.dt_min=1e-4", "time.dt_max=1e-3")])
+    assert rc == 3
+    info = json.loads((tmp_path / "run.json").read_text())
+    assert info["status"] == "failed"
+    assert info["failure"]["reason"] == "time step collapsed"
+    assert info["failure"]["max_signal_speed"] > 0
+    assert "failed" in capsys.readouterr().err
+    assert (tmp_path / "checkpoint" / "state.npz").exists()
+
+
+def test_forced_nan_stops_with_point_named(tmp_path):
+    from conftest import make_sim
+
+    from segmpm.simulation import SimulationError
+
+    sim = make_sim(["geometry.depth=0.004", "geometry.length=0.002"], out_dir=tmp_path)
+    sim.state.v[0, 17] = np.nan
+    with pytest.raises(SimulationError) as err:
+        sim.advance_to(0.01)
+    d = err.value.diagnostic
+    assert d["reason"] == "non-finite state" and "time" in d and "point" in d
+
+
+def test_atomic_write_survives_a_crash(tmp_path):
+    from segmpm.io.atomic import write_with
+
+    target = tmp_path / "f.txt"
+    target.write_text("good")
+
+    def crash(tmp):
+        tmp.write_text("half")
+        raise RuntimeError("crash during write")
+
+    with pytest.raises(RuntimeError):
+        write_with(target, crash)
+    assert target.read_text() == "good"
+    assert [p.name for p in tmp_path.iterdir()] == ["f.txt"]
+
+
+def test_resume_refuses_without_checkpoint(tmp_path, capsys):
+    assert main(["run", "--resume", "--out", str(tmp_path)]) == 2
+    assert "no checkpoint" in capsys.readouterr().err
+    assert os.listdir(tmp_path) == []
