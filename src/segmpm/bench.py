@@ -1,0 +1,99 @@
+"""``segmpm bench``: throughput of the full coupled step on the seed chute.
+
+For each size N (material points) and thread count, the seed chute case (granular model, sidewall
+friction, segregation subcycle) is built with a periodic length that gives about N points, run for
+a short settling period, then timed over a fixed number of steps. Compile time (first call) is
+reported apart. Results: particle-steps per second and ns per particle-step.
+"""
+
+from __future__ import annotations
+
+import platform
+import sys
+import time
+from typing import Any
+
+import numba
+
+from . import __version__
+from .config import load_config
+from .io.atomic import write_json
+
+
+def _config_for(n_points: int):
+    base = load_config(overrides=["output.progress=false", "output.fields=false"])
+    h = base.grid.cell_size
+    ppc = base.grid.particles_per_cell
+    rows = round(base.geometry.depth / (h / ppc))
+    cells = max(3, round(n_points / rows / ppc))
+    return load_config(
+        overrides=[
+            "output.progress=false",
+            "output.fields=false",
+            f"geometry.length={cells * h!r}",
+            # the segregation subcycle every 1e-4 s so that it is part of the timed steps
+            "segregation.dt=1e-4",
+        ]
+    )
+
+
+def bench_case(n_points: int, threads: int, steps: int) -> dict[str, Any]:
+    """Time ``steps`` steps of the seed chute with about ``n_points`` points on ``threads`` threads."""
+    from .simulation import Simulation
+
+    numba.set_num_threads(threads)
+    cfg = _config_for(n_points)
+    sim = Simulation(cfg)
+    t0 = time.perf_counter()
+    sim.advance(1.0, 1)  # compiles (or loads the cache)
+    compile_s = time.perf_counter() - t0
+    sim.advance(1.0, max(10, steps // 10))  # leave the start-up state
+    w0, s0 = sim.wall_time, sim.steps
+    sim.advance(1.0, steps)
+    wall = sim.wall_time - w0
+    n = sim.state.n
+    done = sim.steps - s0
+    return {
+        "n_points": n,
+        "threads": threads,
+        "steps": done,
+        "wall_s": wall,
+        "particle_steps_per_s": done * n / wall,
+        "ns_per_particle_step": wall / (done * n) * 1e9,
+        "first_call_s": compile_s,
+    }
+
+
+def run_bench(sizes: list[int], threads: list[int], steps: int, json_out: str | None) -> int:
+    """Run the benchmark grid, print a table, optionally write JSON; returns the exit code."""
+    max_threads = numba.config.NUMBA_NUM_THREADS
+    results = []
+    print(f"segmpm {__version__} bench: seed chute (Fei model + sidewall + segregation), "
+          f"{steps} timed steps per case, numba {numba.__version__}, up to {max_threads} threads")  # fmt: skip
+    print(
+        f"{'points':>8} {'threads':>7} {'Mpart-steps/s':>14} {'ns/part-step':>13} {'first call s':>13}"
+    )
+    for n in sizes:
+        for t in threads:
+            if t > max_threads:
+                print(
+                    f"{n:>8} {t:>7}  skipped: only {max_threads} threads available", file=sys.stderr
+                )
+                continue
+            r = bench_case(n, t, steps)
+            results.append(r)
+            print(f"{r['n_points']:>8} {t:>7} {r['particle_steps_per_s'] / 1e6:>14.3f} "
+                  f"{r['ns_per_particle_step']:>13.1f} {r['first_call_s']:>13.2f}", flush=True)  # fmt: skip
+    doc = {
+        "segmpm_version": __version__,
+        "machine": {
+            "python": platform.python_version(),
+            "processor": platform.processor(),
+            "numba": numba.__version__,
+            "max_threads": max_threads,
+        },  # fmt: skip
+        "results": results,
+    }
+    if json_out:
+        write_json(json_out, doc)
+    return 0
