@@ -29,6 +29,7 @@ from .mpm.params import (
     G_NY,
     G_Y0,
     S_DT,
+    S_NSEG,
     S_NUMAX,
     S_SMAX,
     S_STEP,
@@ -299,8 +300,21 @@ class Simulation:
                           title=f"{cfg.scenario.kind}: depth profiles")  # fmt: skip
         return RunResult(status, exit_code, info)
 
+    def segregation_diagnostics(self) -> dict[str, float]:
+        """Segregation index, species centroids and small-grain volume drift of the current state."""
+        from .segregation.diagnostics import segregation_index, species_centroids
+
+        st = self.state
+        ys, yl = species_centroids(st.x[1], st.vol0, st.phi)
+        return {
+            "segregation_index": segregation_index(st.x[1], st.vol0, st.phi),
+            "centroid_small": ys,
+            "centroid_large": yl,
+            "small_volume_drift": self.conservation()["small_volume_drift"],
+        }
+
     def _output(self, t: float, writer, vtk) -> None:
-        writer.add(t, self.profiles())
+        writer.add(t, self.profiles(), self.segregation_diagnostics())
         if self.config.output.fields:
             vtk.add(t, self.state)
 
@@ -320,6 +334,8 @@ class Simulation:
             else None,
             "last_dt": float(self.state.sc[S_DT]),
             "conservation": self.conservation(),
+            "segregation": self.segregation_diagnostics(),
+            "concentration_steps": int(self.state.sc[S_NSEG]),
         }
         if failure is not None:
             info["failure"] = failure

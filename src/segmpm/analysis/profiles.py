@@ -25,6 +25,14 @@ PROFILE_VARIABLES = {
     "normal_stress": ("Pa", "normal stress −σ_yy (compression positive)"),
 }
 
+#: scalar time series written beside the profiles (segregation diagnostics, docs/segregation.md)
+SCALAR_VARIABLES = {
+    "segregation_index": ("1", "SI = 2 (ȳ_l − ȳ_s)/H: 0 mixed, +1 small grains at the bottom"),
+    "centroid_small": ("m", "volume-weighted mean height of the small grains ȳ_s"),
+    "centroid_large": ("m", "volume-weighted mean height of the large grains ȳ_l"),
+    "small_volume_drift": ("1", "relative drift of the total small-grain volume Σ V⁰ φ_s"),
+}
+
 
 def bin_edges(top: float, width: float) -> np.ndarray:
     """Bin edges from the base (y = 0) up to ``top`` (inclusive), ``width`` thick."""

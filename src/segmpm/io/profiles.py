@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from ..analysis.profiles import PROFILE_VARIABLES
+from ..analysis.profiles import PROFILE_VARIABLES, SCALAR_VARIABLES
 from .atomic import write_with
 
 
@@ -20,16 +20,20 @@ class ProfileWriter:
         self.attrs = dict(attrs)
         self.times: list[float] = []
         self.rows: list[dict[str, np.ndarray]] = []
+        self.scalars: list[dict[str, float]] = []
 
     @property
     def y(self) -> np.ndarray:
         """Bin centres, m."""
         return 0.5 * (self.edges[1:] + self.edges[:-1])
 
-    def add(self, time: float, profiles: dict[str, np.ndarray]) -> None:
-        """Append the profiles at ``time`` and rewrite the file."""
+    def add(
+        self, time: float, profiles: dict[str, np.ndarray], scalars: dict[str, float] | None = None
+    ) -> None:
+        """Append the profiles (and scalar time series) at ``time`` and rewrite the file."""
         self.times.append(float(time))
         self.rows.append({k: np.asarray(v, dtype=np.float64) for k, v in profiles.items()})
+        self.scalars.append(dict(scalars or {}))
         self.write()
 
     def dataset(self) -> xr.Dataset:
@@ -55,6 +59,10 @@ class ProfileWriter:
             attrs=self.attrs,
         )
         ds["y_edges"] = (("y_edge",), self.edges, {"units": "m"})
+        for name, (units, long_name) in SCALAR_VARIABLES.items():
+            if self.scalars and all(name in sc for sc in self.scalars):
+                vals = np.array([sc[name] for sc in self.scalars], dtype=np.float64)
+                ds[name] = (("time",), vals, {"units": units, "long_name": long_name})
         return ds
 
     def write(self) -> None:
@@ -73,4 +81,7 @@ class ProfileWriter:
                 self.times.append(float(t))
                 self.rows.append(
                     {k: ds[k].values[i] for k in PROFILE_VARIABLES if k in ds.data_vars}
+                )
+                self.scalars.append(
+                    {k: float(ds[k].values[i]) for k in SCALAR_VARIABLES if k in ds.data_vars}
                 )
