@@ -265,6 +265,7 @@ def main():
         ov[label] = dict(time_s=0.0 if i == -1 else float(times[i]), n_contacts=int(len(rel)),
                          mean_overlap_over_d=st(rel, np.mean), max_overlap_over_d=st(rel, np.max),
                          p99_overlap_over_d=st(rel, lambda a: np.percentile(a, 99)),
+                         n_contacts_over_1pct=int((rel > 0.01).sum()),
                          base_mean_overlap_over_d=st(rel[base], np.mean),
                          base_max_overlap_over_d=st(rel[base], np.max),
                          wall_mean_overlap_over_d=st(wrel, np.mean),
