@@ -21,6 +21,16 @@ from .boundary import apply_bc, sidewall_friction
 from .params import G_GX, G_GY, G_H, G_NX, G_PERIODIC, G_SIDEWALL, G_X0, G_Y0
 from .shape import bspline2
 
+@njit(cache=True, inline="always")
+def _wrap(i, n):
+    """Periodic node index for i in [−n, 2n) without an integer division."""
+    if i < 0:
+        return i + n
+    if i >= n:
+        return i - n
+    return i
+
+
 #: nodal accumulator fields of P2G
 N_MASS, N_MX, N_MY, N_FX, N_FY, N_MP, N_MRHO, N_FIELDS = range(8)
 
@@ -79,7 +89,7 @@ def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, gp, grid, with_force):
     pp = pres[p]
     for a in range(3):
         ixu = bx + a
-        ix = ixu % nx if periodic else ixu
+        ix = _wrap(ixu, nx) if periodic else ixu
         ddx = ixu * h + x0 - xp
         for b in range(3):
             iy = by + b
@@ -193,7 +203,7 @@ def gather_old(p, x, gp, gv_old):
     oy = 0.0
     for a in range(3):
         ixu = bx + a
-        ix = ixu % nx if periodic else ixu
+        ix = _wrap(ixu, nx) if periodic else ixu
         for b in range(3):
             w = wx[a] * wy[b]
             ox += w * gv_old[ix, by + b, 0]
@@ -229,7 +239,7 @@ def gather_point(p, x, gp, gv):
     l11 = 0.0
     for a in range(3):
         ixu = bx + a
-        ix = ixu % nx if periodic else ixu
+        ix = _wrap(ixu, nx) if periodic else ixu
         ddx = ixu * h + x0 - xp
         for b in range(3):
             iy = by + b
