@@ -136,3 +136,20 @@ def test_resume_refuses_without_checkpoint(tmp_path, capsys):
     assert main(["run", "--resume", "--out", str(tmp_path)]) == 2
     assert "no checkpoint" in capsys.readouterr().err
     assert os.listdir(tmp_path) == []
+
+
+def test_results_do_not_depend_on_thread_count():
+    import numba
+    from conftest import make_sim
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs at least 2 numba threads")
+    states = []
+    for threads in (1, 2):
+        numba.set_num_threads(threads)
+        sim = make_sim(["geometry.depth=0.006", "geometry.length=0.004"])
+        sim.advance_to(0.05)
+        states.append({k: v.copy() for k, v in sim.state.arrays().items()})
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    for k in states[0]:
+        np.testing.assert_array_equal(states[0][k], states[1][k], err_msg=k)

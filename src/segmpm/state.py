@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from .mpm.params import G_NX, G_NY, S_NSLOTS
-from .mpm.transfer import N_FIELDS
+from .mpm.transfer import N_FIELDS, STRIP
 
 #: arrays that define the physical state (saved in checkpoints)
 STATE_ARRAYS = ("x", "v", "C", "mass", "vol0", "J", "eps", "sig", "phi", "diag", "s_int", "g_int")
@@ -105,7 +105,7 @@ class State:
     def allocate_work(self) -> None:
         """(Re)allocate the grid and sorting work arrays for this state's grid."""
         nx, ny, n = int(self.gp[G_NX]), int(self.gp[G_NY]), self.n
-        nstrips = ny // 2 + 2
+        nstrips = ny // STRIP + 2
         self.work = {
             "grid": np.zeros((nx, ny, N_FIELDS)),
             "gv": np.zeros((nx, ny, 2)),

@@ -5,9 +5,10 @@ Points are struct-of-arrays: ``x`` (2, N), ``v`` (2, N), ``C`` (4, N) the APIC a
 (N_x, N_y[, k]).
 
 P2G is parallel and deterministic whatever the thread count: points are sorted into horizontal
-strips two cells high; strips of one colour (even, then odd) never share a node, so each strip
-scatters its points in index order without atomics, and every node receives its contributions
-in the same order on any number of threads.
+strips ``STRIP`` = 3 cells high. A point in cell row r touches node rows r − 1 … r + 2, so a strip
+touches its own rows and one below and two above; strips two apart never share a node. Strips of
+one colour (even, then odd) scatter concurrently, each its points in index order without atomics,
+and every node receives its contributions in the same order on any number of threads.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from .boundary import apply_bc, sidewall_friction
 from .params import G_GX, G_GY, G_H, G_NX, G_PERIODIC, G_SIDEWALL, G_X0, G_Y0
 from .shape import bspline2
 
+
 @njit(cache=True, inline="always")
 def _wrap(i, n):
     """Periodic node index for i in [−n, 2n) without an integer division."""
@@ -31,20 +33,23 @@ def _wrap(i, n):
     return i
 
 
+#: cell rows per P2G strip (must be ≥ 3 for strips of one colour to share no node)
+STRIP = 3
+
 #: nodal accumulator fields of P2G
 N_MASS, N_MX, N_MY, N_FX, N_FY, N_MP, N_MRHO, N_FIELDS = range(8)
 
 
 @njit(cache=True)
 def sort_into_strips(py, gp, strip_start, cursor, order):
-    """Stable counting sort of the points by strip (2 cell rows); ``order`` lists them by strip."""
+    """Stable counting sort of the points by strip (``STRIP`` cell rows); ``order`` lists them."""
     h = gp[G_H]
     y0 = gp[G_Y0]
     ns = strip_start.shape[0] - 1
     strip_start[:] = 0
     n = py.shape[0]
     for p in range(n):
-        s = int(math.floor((py[p] - y0) / h)) // 2
+        s = int(math.floor((py[p] - y0) / h)) // STRIP
         s = min(max(s, 0), ns - 1)
         cursor[p] = s
         strip_start[s + 1] += 1
