@@ -206,7 +206,7 @@ class OutputConfig(_Section):
     """What a run writes (interface.md, "Outputs")."""
 
     #: output directory (``--out`` overrides it).
-    dir: str = "segmpm-out"
+    dir: Annotated[str, Field(min_length=1, max_length=4096)] = "segmpm-out"
     #: times at which depth profiles are written, s.
     profile_times: list[Annotated[float, Field(ge=0, allow_inf_nan=False)]] = [
         0.0,
@@ -230,6 +230,10 @@ class OutputConfig(_Section):
 
     @model_validator(mode="after")
     def _sorted(self) -> OutputConfig:
+        try:
+            self.dir.encode("utf-8")
+        except UnicodeEncodeError:
+            raise ValueError(f"output.dir = {self.dir!r} is not valid UTF-8 text") from None
         if sorted(self.profile_times) != list(self.profile_times):
             raise ValueError("output.profile_times must be in increasing order")
         if len(set(self.profile_times)) != len(self.profile_times):
@@ -255,6 +259,10 @@ class Config(_Section):
         h = self.grid.cell_size
         g = self.geometry
         kind = self.scenario.kind
+        if not h >= 1e-9:
+            raise ValueError(
+                f"grid.cell_size = {h} is too small: allowed ≥ 1e-9 m (and the memory guard below)"
+            )
         if kind in ("chute", "box"):
             n = g.length / h
             if abs(n - round(n)) > 1e-6 * max(1.0, n) or round(n) < 3:
@@ -391,8 +399,12 @@ def parse_override(item: str) -> tuple[list[str], Any]:
     raw = raw.strip()
     if raw == "":
         raise ConfigError(f"--set {item!r}: missing value for key {key!r}")
+    if "\n" in raw or "\r" in raw:
+        raise ConfigError(f"--set {key}: the value must be on one line")
     try:
         value = tomllib.loads(f"v = {raw}")["v"]
+    except RecursionError:
+        raise ConfigError(f"--set {key}: the value is nested too deeply") from None
     except tomllib.TOMLDecodeError:
         if any(c in raw for c in "[]{}\"'=\n"):
             raise ConfigError(f"--set {item!r}: the value {raw!r} is not valid TOML") from None
@@ -438,6 +450,8 @@ def read_toml(path: str | Path) -> dict[str, Any]:
             return tomllib.load(fh)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"configuration file {str(p)!r} is not valid TOML: {err}") from None
+    except RecursionError:
+        raise ConfigError(f"configuration file {str(p)!r} is nested too deeply") from None
     except (OSError, UnicodeDecodeError) as err:
         raise ConfigError(f"configuration file {str(p)!r} cannot be read: {err}") from None
 
@@ -466,6 +480,23 @@ def default_data() -> dict[str, Any]:
 # minimal TOML writer (the configuration is two levels deep: sections of scalars and lists)
 
 
+_ESCAPES = {"\\": "\\\\", '"': '\\"', "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f",
+            "\r": "\\r"}  # fmt: skip
+
+
+def _toml_string(v: str) -> str:
+    """A TOML basic string; control characters as escapes so the output always parses."""
+    out = []
+    for ch in v:
+        if ch in _ESCAPES:
+            out.append(_ESCAPES[ch])
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04X}")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
 def _toml_value(v: Any) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
@@ -476,7 +507,7 @@ def _toml_value(v: Any) -> str:
             raise ValueError("non-finite value in configuration")
         return repr(v)
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        return _toml_string(v)
     if isinstance(v, list | tuple):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
