@@ -39,9 +39,10 @@ def test_conserved_bounded_and_moving(closure):
     [
         ["segregation.model='hill_tan_full'", "segregation.b_c_small=-0.02"],
         ["segregation.model='gray_thornton'", "segregation.q=0.01"],
-        # Bagnold flow (no sidewalls): S_A = μ_d p grows downward, so the reduced model lifts the
-        # small grains (physics.md §2.5) — the sign rule tested the other way round
-        ["segregation.model='hill_tan_reduced'"],
+        # Bagnold flow (no sidewalls): S_A = μ_d p and S_B ∝ ρ(γ̇ d̄)² grow downward, so the reduced
+        # model lifts the small grains (physics.md §2.5) — the sign rule tested the other way round
+        ["segregation.model='hill_tan_reduced'", "segregation.driver='A'"],
+        ["segregation.model='hill_tan_reduced'", "segregation.driver='B'"],
     ],
 )
 def test_direction_of_segregation(closure):
