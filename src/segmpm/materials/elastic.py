@@ -10,7 +10,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .fei2016 import jaumann_predictor
+from .fei2016 import deviatoric_rate, jaumann_predictor
 from .params import M_F, M_LAMBDA, M_MU, M_RHO_S
 
 
@@ -27,12 +27,7 @@ def elastic_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     sxy = 2.0 * mu * exy
     szz = lam * tr + 2.0 * mu * ezz
     p = -(sxx + syy + szz) / 3.0
-    dxy = 0.5 * (l01 + l10)
-    trd = l00 + l11
-    dpxx = l00 - trd / 3.0
-    dpyy = l11 - trd / 3.0
-    dpzz = -trd / 3.0
-    gdot = math.sqrt(2.0 * (dpxx * dpxx + dpyy * dpyy + dpzz * dpzz + 2.0 * dxy * dxy))
+    gdot = deviatoric_rate(l00, l01, l10, l11)[5]
     c = math.sqrt((lam + 2.0 * mu) / rho)
     return exx, eyy, exy, ezz, sxx, syy, sxy, szz, p, gdot, 0.0, 0.0, c, 0.0
 

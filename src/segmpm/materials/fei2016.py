@@ -53,6 +53,18 @@ def jaumann_predictor(exx, eyy, exy, ezz, l00, l01, l10, l11, dt):
     return nxx, nyy, nxy, ezz
 
 
+@njit(cache=True, inline="always")
+def deviatoric_rate(l00, l01, l10, l11):
+    """d′ (xx, yy, zz, xy) of plane strain (d_zz = 0) and the shear rate γ̇ = √(2 d′:d′)."""
+    dxy = 0.5 * (l01 + l10)
+    trd = l00 + l11
+    dpxx = l00 - trd / 3.0
+    dpyy = l11 - trd / 3.0
+    dpzz = -trd / 3.0
+    gdot = math.sqrt(2.0 * (dpxx * dpxx + dpyy * dpyy + dpzz * dpzz + 2.0 * dxy * dxy))
+    return dpxx, dpyy, dpzz, dxy, trd, gdot
+
+
 @njit(cache=True)
 def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     """Stress update of one material point.
@@ -66,13 +78,7 @@ def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     C = prm[M_C]
     rho_s = prm[M_RHO_S]
     rho = prm[M_F] * rho_s / J
-    # rate of deformation, deviatoric part in 3-D (d_zz = 0 in plane strain)
-    dxy = 0.5 * (l01 + l10)
-    trd = l00 + l11
-    dpxx = l00 - trd / 3.0
-    dpyy = l11 - trd / 3.0
-    dpzz = -trd / 3.0
-    gdot = math.sqrt(2.0 * (dpxx * dpxx + dpyy * dpyy + dpzz * dpzz + 2.0 * dxy * dxy))
+    dpxx, dpyy, dpzz, dxy, trd, gdot = deviatoric_rate(l00, l01, l10, l11)
 
     exx, eyy, exy, ezz = jaumann_predictor(exx, eyy, exy, ezz, l00, l01, l10, l11, dt)
     I1 = -math.log(J)

@@ -64,6 +64,22 @@ def sort_into_strips(py, gp, strip_start, cursor, order):
         fill[s] += 1
 
 
+@njit(cache=True)  # not numba-inlined: tuple returns trip the parfor analysis; LLVM inlines it
+def _stencil(p, x, gp):
+    """Quadratic B-spline stencil of point p: base nodes, weights and gradients (per metre)."""
+    h = gp[G_H]
+    bx, wx0, wx1, wx2, dx0, dx1, dx2 = bspline2((x[0, p] - gp[G_X0]) / h)
+    by, wy0, wy1, wy2, dy0, dy1, dy2 = bspline2((x[1, p] - gp[G_Y0]) / h)
+    return (
+        bx,
+        by,
+        (wx0, wx1, wx2),
+        (wy0, wy1, wy2),
+        (dx0 / h, dx1 / h, dx2 / h),
+        (dy0 / h, dy1 / h, dy2 / h),
+    )
+
+
 @njit(cache=True, inline="always")
 def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, gp, grid, with_force):
     h = gp[G_H]
@@ -73,12 +89,7 @@ def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, gp, grid, with_force):
     periodic = gp[G_PERIODIC] != 0.0
     xp = x[0, p]
     yp = x[1, p]
-    bx, wx0, wx1, wx2, dx0, dx1, dx2 = bspline2((xp - x0) / h)
-    by, wy0, wy1, wy2, dy0, dy1, dy2 = bspline2((yp - y0) / h)
-    wx = (wx0, wx1, wx2)
-    wy = (wy0, wy1, wy2)
-    dwx = (dx0 / h, dx1 / h, dx2 / h)
-    dwy = (dy0 / h, dy1 / h, dy2 / h)
+    bx, by, wx, wy, dwx, dwy = _stencil(p, x, gp)
     m = mass[p]
     vol = vol0[p] * J[p]
     rho = m / vol
@@ -195,15 +206,9 @@ def momentum_to_velocity(gp, grid, gv):
 @njit(cache=True, inline="always")
 def gather_old(p, x, gp, gv_old):
     """Σ w v_i^old at point p (the FLIP increment's old nodal velocity)."""
-    h = gp[G_H]
-    x0 = gp[G_X0]
-    y0 = gp[G_Y0]
     nx = int(gp[G_NX])
     periodic = gp[G_PERIODIC] != 0.0
-    bx, wx0, wx1, wx2, _, _, _ = bspline2((x[0, p] - x0) / h)
-    by, wy0, wy1, wy2, _, _, _ = bspline2((x[1, p] - y0) / h)
-    wx = (wx0, wx1, wx2)
-    wy = (wy0, wy1, wy2)
+    bx, by, wx, wy, _, _ = _stencil(p, x, gp)
     ox = 0.0
     oy = 0.0
     for a in range(3):
@@ -226,12 +231,7 @@ def gather_point(p, x, gp, gv):
     periodic = gp[G_PERIODIC] != 0.0
     xp = x[0, p]
     yp = x[1, p]
-    bx, wx0, wx1, wx2, dx0, dx1, dx2 = bspline2((xp - x0) / h)
-    by, wy0, wy1, wy2, dy0, dy1, dy2 = bspline2((yp - y0) / h)
-    wx = (wx0, wx1, wx2)
-    wy = (wy0, wy1, wy2)
-    dwx = (dx0 / h, dx1 / h, dx2 / h)
-    dwy = (dy0 / h, dy1 / h, dy2 / h)
+    bx, by, wx, wy, dwx, dwy = _stencil(p, x, gp)
     vx = 0.0
     vy = 0.0
     b00 = 0.0
