@@ -17,9 +17,9 @@ from segmpm.simulation import Simulation  # noqa: E402
 # The suite runs the compiled loop on one thread: numba's parallel regions spin-wait, and on a
 # shared 2-core machine a second thread that loses its core slows every step by an order of
 # magnitude. Results do not depend on the thread count (test_reliability checks 1 vs 2 threads,
-# which stays possible because NUMBA_NUM_THREADS was read at import). Subprocesses inherit 1.
+# which stays possible because NUMBA_NUM_THREADS is left as it is). Subprocesses get SUBPROCESS_ENV.
 numba.set_num_threads(1)
-os.environ["NUMBA_NUM_THREADS"] = "1"
+SUBPROCESS_ENV = {**os.environ, "NUMBA_NUM_THREADS": "1"}
 
 
 def make_sim(overrides: list[str], out_dir=None) -> Simulation:

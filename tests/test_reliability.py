@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
+from conftest import SUBPROCESS_ENV
 
 from segmpm.cli import main
 
@@ -37,7 +38,9 @@ def _profiles(path: Path) -> xr.Dataset:
 
 
 def _segmpm(args, **kw):
-    return subprocess.Popen([sys.executable, "-m", "segmpm.cli", *args], **kw)
+    from conftest import SUBPROCESS_ENV
+
+    return subprocess.Popen([sys.executable, "-m", "segmpm.cli", *args], env=SUBPROCESS_ENV, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +85,7 @@ def test_interrupt_then_resume_gives_the_same_result(reference_run, tmp_path, si
     # every output on disk is readable (nothing half-written)
     _profiles(out)
     res = subprocess.run([sys.executable, "-m", "segmpm.cli", "run", "--resume", "--out", str(out)],
-                         capture_output=True, timeout=600)  # fmt: skip
+                         capture_output=True, timeout=600, env=SUBPROCESS_ENV)  # fmt: skip
     assert res.returncode == 0, res.stderr.decode()
     a, b = _profiles(reference_run), _profiles(out)
     np.testing.assert_array_equal(a["time"].values, b["time"].values)
