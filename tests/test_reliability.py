@@ -38,8 +38,6 @@ def _profiles(path: Path) -> xr.Dataset:
 
 
 def _segmpm(args, **kw):
-    from conftest import SUBPROCESS_ENV
-
     return subprocess.Popen([sys.executable, "-m", "segmpm.cli", *args], env=SUBPROCESS_ENV, **kw)
 
 
