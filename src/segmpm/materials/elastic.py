@@ -10,7 +10,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .fei2016 import deviatoric_rate, jaumann_predictor
+from .fei2016 import deviatoric_rate, jaumann_predictor, jaumann_predictor_np
 from .params import M_F, M_LAMBDA, M_MU, M_RHO_S
 
 
@@ -37,12 +37,7 @@ def elastic_update_np(prm, L, dt, eps, J, phi):
     L = np.asarray(L, dtype=np.float64)
     lam, mu = prm[M_LAMBDA], prm[M_MU]
     rho = prm[M_F] * prm[M_RHO_S] / J
-    d = 0.5 * (L + np.swapaxes(L, 1, 2))
-    w = 0.5 * (L - np.swapaxes(L, 1, 2))
-    E2 = np.zeros_like(L)
-    E2[:, 0, 0], E2[:, 1, 1] = eps[:, 0], eps[:, 1]
-    E2[:, 0, 1] = E2[:, 1, 0] = eps[:, 2]
-    E2 = E2 + dt * (d + w @ E2 - E2 @ w)
+    d, E2 = jaumann_predictor_np(L, dt, eps)
     ezz = np.asarray(eps)[:, 3]
     tr = E2[:, 0, 0] + E2[:, 1, 1] + ezz
     sig = np.stack(

@@ -154,6 +154,16 @@ def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
 # NumPy reference (vectorised over points) and closed-form helpers used by the tests
 
 
+def jaumann_predictor_np(L, dt, eps):
+    """NumPy :func:`jaumann_predictor`: returns d = sym L and the in-plane trial strain (n, 2, 2)."""
+    d = 0.5 * (L + np.swapaxes(L, 1, 2))
+    w = 0.5 * (L - np.swapaxes(L, 1, 2))
+    E2 = np.zeros_like(L)
+    E2[:, 0, 0], E2[:, 1, 1] = eps[:, 0], eps[:, 1]
+    E2[:, 0, 1] = E2[:, 1, 0] = eps[:, 2]
+    return d, E2 + dt * (d + w @ E2 - E2 @ w)
+
+
 def fei_update_np(prm, L, dt, eps, J, phi):
     """NumPy reference of :func:`fei_update` for arrays of points.
 
@@ -163,12 +173,7 @@ def fei_update_np(prm, L, dt, eps, J, phi):
     eps = np.array(eps, dtype=np.float64)
     A, C, rho_s = prm[M_A], prm[M_C], prm[M_RHO_S]
     rho = prm[M_F] * rho_s / J
-    d = 0.5 * (L + np.swapaxes(L, 1, 2))
-    w = 0.5 * (L - np.swapaxes(L, 1, 2))
-    E2 = np.zeros_like(L)
-    E2[:, 0, 0], E2[:, 1, 1] = eps[:, 0], eps[:, 1]
-    E2[:, 0, 1] = E2[:, 1, 0] = eps[:, 2]
-    E2 = E2 + dt * (d + w @ E2 - E2 @ w)
+    d, E2 = jaumann_predictor_np(L, dt, eps)
     E3 = np.zeros((len(J), 3, 3))
     E3[:, :2, :2] = E2
     E3[:, 2, 2] = eps[:, 3]
