@@ -154,7 +154,7 @@ def test_periodic_box_momentum_conserved_and_grid_mass_exact(rng):
     w = st.work
     sort_into_strips(st.x[1], st.gp, w["strip_start"], w["cursor"], w["order"])
     p2g(st.x, st.v, st.C, st.mass, st.vol0, st.J, st.sig, st.diag[0], st.gp, w["grid"],
-        w["strip_start"], w["order"], True)  # fmt: skip
+        w["strip_start"], w["order"], np.zeros(3, dtype=np.int64), True)  # fmt: skip
     assert abs(w["grid"][..., N_MASS].sum() - st.mass.sum()) < 1e-14 * st.mass.sum()
 
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 
 from . import __version__
@@ -46,6 +47,15 @@ EXIT_OK = 0
 EXIT_INVALID = 2
 EXIT_NUMERICAL = 3
 EXIT_INTERRUPTED = 130
+
+
+def _bounds(work: dict[str, np.ndarray]) -> np.ndarray:
+    """P2G's per-thread strip-run bounds, sized for the current Numba thread count."""
+    nt = numba.get_num_threads()
+    b = work.get("bounds")
+    if b is None or b.shape[0] != nt + 1:
+        b = work["bounds"] = np.zeros(nt + 1, dtype=np.int64)
+    return b
 
 
 class SimulationError(RuntimeError):
@@ -113,7 +123,7 @@ class Simulation:
         status, idx, n = advance(
             st.x, st.v, st.C, st.mass, st.vol0, st.J, st.eps, st.sig, st.phi, st.diag,
             st.s_int, st.g_int, st.gp, st.mp, st.sc, w["grid"], w["gv"], w["gv_old"],
-            w["strip_start"], w["cursor"], w["order"], w["flags"], w["x_old"],
+            w["strip_start"], w["cursor"], w["order"], _bounds(w), w["flags"], w["x_old"],
             st.seg_prm, st.cg, st.seg_work, float(t_stop), int(max_steps),
         )  # fmt: skip
         self.wall_time += _time.perf_counter() - t0

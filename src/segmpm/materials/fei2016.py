@@ -42,7 +42,7 @@ from .params import (
 )
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def jaumann_predictor(exx, eyy, exy, ezz, l00, l01, l10, l11, dt):
     """ε^e + Δt (d + w ε^e − ε^e w): objective elastic predictor (physics.md §1.5 step 1)."""
     dxy = 0.5 * (l01 + l10)
@@ -53,7 +53,7 @@ def jaumann_predictor(exx, eyy, exy, ezz, l00, l01, l10, l11, dt):
     return nxx, nyy, nxy, ezz
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def deviatoric_rate(l00, l01, l10, l11):
     """d′ (xx, yy, zz, xy) of plane strain (d_zz = 0) and the shear rate γ̇ = √(2 d′:d′)."""
     dxy = 0.5 * (l01 + l10)
@@ -65,7 +65,7 @@ def deviatoric_rate(l00, l01, l10, l11):
     return dpxx, dpyy, dpzz, dxy, trd, gdot
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     """Stress update of one material point.
 

@@ -31,7 +31,7 @@ from .params import (
 )
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def _plane(kind, mu, vn, vt):
     """Wall condition in the wall frame: vn > 0 points away from the wall into the material."""
     if kind == BC_NOSLIP:
@@ -48,7 +48,7 @@ def _plane(kind, mu, vn, vt):
     return 0.0, vt - mu * dvn * (1.0 if vt > 0.0 else -1.0)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def apply_bc(gp, xn, yn, vx, vy):
     """Velocity of the node at (xn, yn) after the base and wall conditions."""
     tol = 1e-9 * gp[G_H]
@@ -66,7 +66,7 @@ def apply_bc(gp, xn, yn, vx, vy):
     return vx, vy
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def sidewall_friction(vx, vy, dvmax):
     """Coulomb update v ← v − min(|v|, Δv_max) v/|v| (physics.md §3.3): never reverses v."""
     speed = math.sqrt(vx * vx + vy * vy)

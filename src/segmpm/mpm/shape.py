@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def bspline2(xi: float) -> tuple[int, float, float, float, float, float, float]:
     """Base node and the weights/derivatives (per grid unit) of the quadratic B-spline at ξ."""
     base = int(np.floor(xi - 0.5))

@@ -44,8 +44,7 @@ from .params import (
     TRANSFER_FLIP,
 )
 from .transfer import (
-    gather_old,
-    gather_point,
+    gather,
     grid_update,
     momentum_to_velocity,
     p2g,
@@ -53,7 +52,7 @@ from .transfer import (
 )
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def _inside(gp, xp, yp):
     """True if the point's 3×3 stencil lies inside the grid."""
     h = gp[G_H]
@@ -67,64 +66,78 @@ def _inside(gp, xp, yp):
     return True
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, error_model="numpy", inline="always")
+def _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, gv, gv_old, mp, dt, flags,
+               h, x0, y0, nx, periodic, lx, mode, alpha, gp):  # fmt: skip
+    """G2P, advection, J and the material update of one point (see ``update_points``)."""
+    px = x[0, p]
+    py = x[1, p]
+    flip = mode == TRANSFER_FLIP
+    vx, vy, c00, c01, c10, c11, l00, l01, l10, l11, ox, oy = gather(
+        px, py, gv, gv_old, h, x0, y0, nx, periodic, flip or mode == TRANSFER_AFLIP
+    )
+    if flip or mode == TRANSFER_AFLIP:
+        v[0, p] = alpha * (v[0, p] + vx - ox) + (1.0 - alpha) * vx
+        v[1, p] = alpha * (v[1, p] + vy - oy) + (1.0 - alpha) * vy
+    else:
+        v[0, p] = vx
+        v[1, p] = vy
+    if not flip:
+        C[0, p] = c00
+        C[1, p] = c01
+        C[2, p] = c10
+        C[3, p] = c11
+    xn = px + dt * vx
+    yn = py + dt * vy
+    if periodic:
+        if xn >= lx:
+            xn -= lx
+        elif xn < 0.0:
+            xn += lx
+    x[0, p] = xn
+    x[1, p] = yn
+    if not flip:
+        # MUSL (flip) takes the strain rate from the remapped momenta instead (see advance)
+        _stress(p, l00, l01, l10, l11, dt, v, J, eps, sig, phi, diag, s_int, g_int, mp)
+    flags[p] = ST_OK if _inside(gp, xn, yn) else ST_LEFT_GRID
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
 def update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_old, dt, flags):
-    """G2P (APIC, or the FLIP/PIC blend of MUSL), advection, J, and the material update.
+    """G2P (APIC, AFLIP, or the FLIP/PIC blend of MUSL), advection, J, and the material update.
 
     ``diag`` (6, N): pressure, shear rate, inertial number, driver S, c + |v|, ν.
     ``flags[p]``: 0 ok, ST_NONFINITE or ST_LEFT_GRID.
     """
     n = x.shape[1]
-    flip = gp[G_TRANSFER] == TRANSFER_FLIP
-    aflip = gp[G_TRANSFER] == TRANSFER_AFLIP
+    mode = int(gp[G_TRANSFER])
     alpha = gp[G_FLIP]
     lx = gp[G_LX]
+    h = gp[G_H]
+    x0 = gp[G_X0]
+    y0 = gp[G_Y0]
+    nx = int(gp[G_NX])
     periodic = gp[G_PERIODIC] != 0.0
     for p in prange(n):
-        vx, vy, c00, c01, c10, c11, l00, l01, l10, l11 = gather_point(p, x, gp, gv)
-        if flip:
-            ox, oy = gather_old(p, x, gp, gv_old)
-            nvx = alpha * (v[0, p] + vx - ox) + (1.0 - alpha) * vx
-            nvy = alpha * (v[1, p] + vy - oy) + (1.0 - alpha) * vy
-            # MUSL: the strain rate comes from the remapped momenta (second pass, see advance)
-            v[0, p] = nvx
-            v[1, p] = nvy
-        else:
-            if aflip:
-                ox, oy = gather_old(p, x, gp, gv_old)
-                v[0, p] = alpha * (v[0, p] + vx - ox) + (1.0 - alpha) * vx
-                v[1, p] = alpha * (v[1, p] + vy - oy) + (1.0 - alpha) * vy
-            else:
-                v[0, p] = vx
-                v[1, p] = vy
-            C[0, p] = c00
-            C[1, p] = c01
-            C[2, p] = c10
-            C[3, p] = c11
-        xn = x[0, p] + dt * vx
-        yn = x[1, p] + dt * vy
-        if periodic:
-            if xn >= lx:
-                xn -= lx
-            elif xn < 0.0:
-                xn += lx
-        x[0, p] = xn
-        x[1, p] = yn
-        if not flip:
-            _stress(p, l00, l01, l10, l11, dt, v, J, eps, sig, phi, diag, s_int, g_int, mp)
-        flags[p] = ST_OK if _inside(gp, xn, yn) else ST_LEFT_GRID
+        _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, gv, gv_old, mp, dt, flags,
+                   h, x0, y0, nx, periodic, lx, mode, alpha, gp)  # fmt: skip
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, error_model="numpy", parallel=True)
 def update_stress_musl(x, v, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, dt, x_old):
     """MUSL stress update from the remapped nodal velocities, evaluated at the old positions."""
     n = x.shape[1]
+    h = gp[G_H]
+    x0 = gp[G_X0]
+    y0 = gp[G_Y0]
+    nx = int(gp[G_NX])
+    periodic = gp[G_PERIODIC] != 0.0
     for p in prange(n):
-        _, _, _, _, _, _, l00, l01, l10, l11 = gather_point(p, x_old, gp, gv)
-        _stress(p, l00, l01, l10, l11, dt, v, J, eps, sig, phi, diag, s_int, g_int, mp)
+        r = gather(x_old[0, p], x_old[1, p], gv, gv, h, x0, y0, nx, periodic, False)
+        _stress(p, r[6], r[7], r[8], r[9], dt, v, J, eps, sig, phi, diag, s_int, g_int, mp)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def _stress(p, l00, l01, l10, l11, dt, v, J, eps, sig, phi, diag, s_int, g_int, mp):
     Jn = J[p] * ((1.0 + dt * l00) * (1.0 + dt * l11) - dt * dt * l01 * l10)
     J[p] = Jn
@@ -151,7 +164,7 @@ def _stress(p, l00, l01, l10, l11, dt, v, J, eps, sig, phi, diag, s_int, g_int, 
     g_int[p] += r[9] * dt
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def prime(J, eps, sig, phi, diag, mp, v):
     """Stress, diagnostics and wave speeds of the initial state (no deformation, Δt = 0)."""
     n = J.shape[0]
@@ -161,7 +174,7 @@ def prime(J, eps, sig, phi, diag, mp, v):
         _stress(p, 0.0, 0.0, 0.0, 0.0, 0.0, v, J, eps, sig, phi, diag, s, g, mp)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _check(x, v, J, sig, diag, flags):
     """Reduce the per-point flags and speeds; returns (status, index, smax, numax)."""
     n = J.shape[0]
@@ -187,10 +200,10 @@ def _check(x, v, J, sig, diag, flags):
     return ST_OK, -1, smax, numax
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def advance(
     x, v, C, mass, vol0, J, eps, sig, phi, diag, s_int, g_int,
-    gp, mp, sc, grid, gv, gv_old, strip_start, cursor, order, flags, x_old,
+    gp, mp, sc, grid, gv, gv_old, strip_start, cursor, order, bounds, flags, x_old,
     seg_prm, cg, seg_work, t_stop, max_steps,
 ):  # fmt: skip
     """Advance the state to ``t_stop`` (exactly) or by ``max_steps`` steps, whichever comes first.
@@ -222,14 +235,14 @@ def advance(
 
         sort_into_strips(x[1], gp, strip_start, cursor, order)
         pres = diag[0]
-        p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, True)
+        p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, True)
         grid_update(gp, grid, gv, gv_old, dt, ramp, True)
         if flip:
             x_old[:, :] = x
         update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_old, dt, flags)
         if flip:
             # MUSL: remap the updated point momenta (old positions), then the strain rate
-            p2g(x_old, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, False)
+            p2g(x_old, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, False)
             momentum_to_velocity(gp, grid, gv)
             update_stress_musl(x, v, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, dt, x_old)
 

@@ -23,7 +23,7 @@ from .params import G_GX, G_GY, G_H, G_NX, G_PERIODIC, G_SIDEWALL, G_X0, G_Y0
 from .shape import bspline2
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def _wrap(i, n):
     """Periodic node index for i in [−n, 2n) without an integer division."""
     if i < 0:
@@ -40,7 +40,7 @@ STRIP = 3
 N_MASS, N_MX, N_MY, N_FX, N_FY, N_MP, N_MRHO, N_FIELDS = range(8)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def sort_into_strips(py, gp, strip_start, cursor, order):
     """Stable counting sort of the points by strip (``STRIP`` cell rows); ``order`` lists them."""
     h = gp[G_H]
@@ -64,32 +64,14 @@ def sort_into_strips(py, gp, strip_start, cursor, order):
         fill[s] += 1
 
 
-@njit(cache=True)  # not numba-inlined: tuple returns trip the parfor analysis; LLVM inlines it
-def _stencil(p, x, gp):
-    """Quadratic B-spline stencil of point p: base nodes, weights and gradients (per metre)."""
-    h = gp[G_H]
-    bx, wx0, wx1, wx2, dx0, dx1, dx2 = bspline2((x[0, p] - gp[G_X0]) / h)
-    by, wy0, wy1, wy2, dy0, dy1, dy2 = bspline2((x[1, p] - gp[G_Y0]) / h)
-    return (
-        bx,
-        by,
-        (wx0, wx1, wx2),
-        (wy0, wy1, wy2),
-        (dx0 / h, dx1 / h, dx2 / h),
-        (dy0 / h, dy1 / h, dy2 / h),
-    )
-
-
-@njit(cache=True, inline="always")
-def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, gp, grid, with_force):
-    h = gp[G_H]
-    x0 = gp[G_X0]
-    y0 = gp[G_Y0]
-    nx = int(gp[G_NX])
-    periodic = gp[G_PERIODIC] != 0.0
+@njit(cache=True, error_model="numpy", inline="always")
+def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, grid, h, x0, y0, nx, periodic, force):
+    """P2G of one point onto its 3 × 3 nodes (a plain function: LLVM inlines it into the parallel
+    loop, where a Numba-inlined tuple-returning helper would trip the parfor analysis)."""
     xp = x[0, p]
     yp = x[1, p]
-    bx, by, wx, wy, dwx, dwy = _stencil(p, x, gp)
+    bx, wx0, wx1, wx2, dx0, dx1, dx2 = bspline2((xp - x0) / h)
+    by, wy0, wy1, wy2, dy0, dy1, dy2 = bspline2((yp - y0) / h)
     m = mass[p]
     vol = vol0[p] * J[p]
     rho = m / vol
@@ -99,45 +81,88 @@ def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, gp, grid, with_force):
     c01 = C[1, p]
     c10 = C[2, p]
     c11 = C[3, p]
-    sxx = sig[0, p]
-    syy = sig[1, p]
-    sxy = sig[2, p]
+    # −V σ·∇w with ∇w per grid unit: the 1/h is folded into the stress
+    fv = -vol / h
+    sxx = fv * sig[0, p]
+    syy = fv * sig[1, p]
+    sxy = fv * sig[2, p]
     pp = pres[p]
     for a in range(3):
+        wa = wx0 if a == 0 else (wx1 if a == 1 else wx2)
+        da = dx0 if a == 0 else (dx1 if a == 1 else dx2)
         ixu = bx + a
         ix = _wrap(ixu, nx) if periodic else ixu
         ddx = ixu * h + x0 - xp
+        mvx = vx + c00 * ddx
+        mvy = vy + c10 * ddx
         for b in range(3):
+            wb = wy0 if b == 0 else (wy1 if b == 1 else wy2)
             iy = by + b
             ddy = iy * h + y0 - yp
-            w = wx[a] * wy[b]
-            mw = m * w
+            mw = m * (wa * wb)
             grid[ix, iy, N_MASS] += mw
-            grid[ix, iy, N_MX] += mw * (vx + c00 * ddx + c01 * ddy)
-            grid[ix, iy, N_MY] += mw * (vy + c10 * ddx + c11 * ddy)
+            grid[ix, iy, N_MX] += mw * (mvx + c01 * ddy)
+            grid[ix, iy, N_MY] += mw * (mvy + c11 * ddy)
             grid[ix, iy, N_MP] += mw * pp
             grid[ix, iy, N_MRHO] += mw * rho
-            if with_force:
-                gx = dwx[a] * wy[b]
-                gy = wx[a] * dwy[b]
-                grid[ix, iy, N_FX] -= vol * (sxx * gx + sxy * gy)
-                grid[ix, iy, N_FY] -= vol * (sxy * gx + syy * gy)
+            if force:
+                db = dy0 if b == 0 else (dy1 if b == 1 else dy2)
+                gx = da * wb
+                gy = wa * db
+                grid[ix, iy, N_FX] += sxx * gx + sxy * gy
+                grid[ix, iy, N_FY] += sxy * gx + syy * gy
 
 
-@njit(cache=True, parallel=True)
-def p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, with_force):
-    """Scatter mass, APIC momentum, internal force −Σ V σ·∇w, and the mass-weighted p and ρ."""
+@njit(cache=True, error_model="numpy")
+def _balance(strip_start, colour, nc, bounds):
+    """Split the strips ``colour + 2k`` (k < nc) into len(bounds) − 1 runs of consecutive strips
+    holding about equal numbers of points (one run per thread; empty strips above the free
+    surface would otherwise leave a thread idle). Which thread scatters a strip does not change
+    the result: strips of one colour share no node."""
+    nt = bounds.shape[0] - 1
+    total = 0
+    for k in range(nc):
+        s = colour + 2 * k
+        total += strip_start[s + 1] - strip_start[s]
+    bounds[0] = 0
+    j = 1
+    acc = 0
+    for k in range(nc):
+        while j < nt and acc * nt >= j * total:
+            bounds[j] = k
+            j += 1
+        s = colour + 2 * k
+        acc += strip_start[s + 1] - strip_start[s]
+    while j <= nt:
+        bounds[j] = nc
+        j += 1
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, with_force):
+    """Scatter mass, APIC momentum, internal force −Σ V σ·∇w, and the mass-weighted p and ρ.
+
+    ``bounds`` (threads + 1): work array; its length sets the number of balanced strip runs."""
     grid[:] = 0.0
     ns = strip_start.shape[0] - 1
+    h = gp[G_H]
+    x0 = gp[G_X0]
+    y0 = gp[G_Y0]
+    nx = int(gp[G_NX])
+    periodic = gp[G_PERIODIC] != 0.0
+    nt = bounds.shape[0] - 1
     for colour in range(2):
         nc = (ns - colour + 1) // 2
-        for k in prange(nc):
-            s = colour + 2 * k
-            for i in range(strip_start[s], strip_start[s + 1]):
-                _scatter_point(order[i], x, v, C, mass, vol0, J, sig, pres, gp, grid, with_force)
+        _balance(strip_start, colour, nc, bounds)
+        for t in prange(nt):
+            for k in range(bounds[t], bounds[t + 1]):
+                s = colour + 2 * k
+                for i in range(strip_start[s], strip_start[s + 1]):
+                    _scatter_point(order[i], x, v, C, mass, vol0, J, sig, pres, grid,
+                                   h, x0, y0, nx, periodic, with_force)  # fmt: skip
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, error_model="numpy", parallel=True)
 def grid_update(gp, grid, gv, gv_old, dt, ramp, sidewall_on):
     """Nodal velocities: v* = (m v + Δt (f + m g))/m, sidewall friction, then boundaries.
 
@@ -183,7 +208,7 @@ def grid_update(gp, grid, gv, gv_old, dt, ramp, sidewall_on):
             gv_old[i, j, 1] = voy
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, error_model="numpy", parallel=True)
 def momentum_to_velocity(gp, grid, gv):
     """MUSL remap: nodal velocity from the re-scattered point momenta, with the boundaries."""
     nx = grid.shape[0]
@@ -203,35 +228,14 @@ def momentum_to_velocity(gp, grid, gv):
             gv[i, j, 1] = vy
 
 
-@njit(cache=True, inline="always")
-def gather_old(p, x, gp, gv_old):
-    """Σ w v_i^old at point p (the FLIP increment's old nodal velocity)."""
-    nx = int(gp[G_NX])
-    periodic = gp[G_PERIODIC] != 0.0
-    bx, by, wx, wy, _, _ = _stencil(p, x, gp)
-    ox = 0.0
-    oy = 0.0
-    for a in range(3):
-        ixu = bx + a
-        ix = _wrap(ixu, nx) if periodic else ixu
-        for b in range(3):
-            w = wx[a] * wy[b]
-            ox += w * gv_old[ix, by + b, 0]
-            oy += w * gv_old[ix, by + b, 1]
-    return ox, oy
-
-
-@njit(cache=True, inline="always")
-def gather_point(p, x, gp, gv):
-    """Σ w v_i, APIC C_p = (4/h²) Σ w v_i (x_i − x_p)ᵀ and L_p = Σ v_i ⊗ ∇w_ip at point p."""
-    h = gp[G_H]
-    x0 = gp[G_X0]
-    y0 = gp[G_Y0]
-    nx = int(gp[G_NX])
-    periodic = gp[G_PERIODIC] != 0.0
-    xp = x[0, p]
-    yp = x[1, p]
-    bx, by, wx, wy, dwx, dwy = _stencil(p, x, gp)
+@njit(cache=True, error_model="numpy", inline="always")
+def gather(px, py, gv, gv_old, h, x0, y0, nx, periodic, old):
+    """G2P at (px, py) in one pass over the 3 × 3 nodes: Σ w v_i, the APIC matrix
+    C_p = (4/h²) Σ w v_i (x_i − x_p)ᵀ, L_p = Σ v_i ⊗ ∇w_i, and (if ``old``) Σ w v_i^old, the old
+    nodal velocity of the FLIP increment. Returns (vx, vy, C00, C01, C10, C11, L00, L01, L10, L11,
+    ox, oy)."""
+    bx, wx0, wx1, wx2, dx0, dx1, dx2 = bspline2((px - x0) / h)
+    by, wy0, wy1, wy2, dy0, dy1, dy2 = bspline2((py - y0) / h)
     vx = 0.0
     vy = 0.0
     b00 = 0.0
@@ -242,27 +246,39 @@ def gather_point(p, x, gp, gv):
     l01 = 0.0
     l10 = 0.0
     l11 = 0.0
+    ox = 0.0
+    oy = 0.0
     for a in range(3):
+        wa = wx0 if a == 0 else (wx1 if a == 1 else wx2)
+        da = dx0 if a == 0 else (dx1 if a == 1 else dx2)
         ixu = bx + a
         ix = _wrap(ixu, nx) if periodic else ixu
-        ddx = ixu * h + x0 - xp
+        ddx = ixu * h + x0 - px
         for b in range(3):
+            wb = wy0 if b == 0 else (wy1 if b == 1 else wy2)
+            db = dy0 if b == 0 else (dy1 if b == 1 else dy2)
             iy = by + b
-            ddy = iy * h + y0 - yp
-            w = wx[a] * wy[b]
+            ddy = iy * h + y0 - py
+            w = wa * wb
             ux = gv[ix, iy, 0]
             uy = gv[ix, iy, 1]
-            vx += w * ux
-            vy += w * uy
-            b00 += w * ux * ddx
-            b01 += w * ux * ddy
-            b10 += w * uy * ddx
-            b11 += w * uy * ddy
-            gxw = dwx[a] * wy[b]
-            gyw = wx[a] * dwy[b]
+            wux = w * ux
+            wuy = w * uy
+            vx += wux
+            vy += wuy
+            b00 += wux * ddx
+            b01 += wux * ddy
+            b10 += wuy * ddx
+            b11 += wuy * ddy
+            gxw = da * wb
+            gyw = wa * db
             l00 += ux * gxw
             l01 += ux * gyw
             l10 += uy * gxw
             l11 += uy * gyw
+            if old:
+                ox += w * gv_old[ix, iy, 0]
+                oy += w * gv_old[ix, iy, 1]
     k = 4.0 / (h * h)
-    return vx, vy, k * b00, k * b01, k * b10, k * b11, l00, l01, l10, l11
+    r = 1.0 / h
+    return (vx, vy, k * b00, k * b01, k * b10, k * b11, r * l00, r * l01, r * l10, r * l11, ox, oy)

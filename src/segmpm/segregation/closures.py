@@ -192,7 +192,7 @@ def pack_params(cfg: Any, gravity_xy: tuple[float, float] | np.ndarray) -> np.nd
 # ---- compiled face functions -----------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def face_velocity_diffusivity(
     prm: np.ndarray,
     s_a: float,
@@ -237,7 +237,7 @@ def face_velocity_diffusivity(
     return 0.0, 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def bernoulli(x: float) -> float:
     """B(x) = x/(eˣ − 1), B(0) = 1 (the Bernoulli function of the Scharfetter–Gummel flux)."""
     if abs(x) < 1e-10:
@@ -245,7 +245,7 @@ def bernoulli(x: float) -> float:
     return x / np.expm1(x)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def face_rates(w: float, d: float, hc: float, flux_kind: int) -> tuple[float, float]:
     """Coefficients (a, b) of the face flux F = a φ_a(1−φ_b) − b φ_b(1−φ_a) (positive along +n).
 

@@ -107,7 +107,7 @@ def allocate_work(cg: ConcGrid) -> tuple[np.ndarray, ...]:
     return tuple(np.zeros((cg.ncx, cg.ncy), dtype=np.float64) for _ in range(N_WORK))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def tent_weights(
     x: float, x0: float, hc: float, n: int, periodic: int
 ) -> tuple[int, int, float, float]:
@@ -142,7 +142,7 @@ def tent_weights(
     return i0, i1, 1.0 - t, t
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def mp_weights(x: float, y: float, cg: ConcGrid, act: np.ndarray):
     """Cells (i0, i1, j0, j1) and weights (w00, w01, w10, w11) of a material point.
 
@@ -168,7 +168,7 @@ def mp_weights(x: float, y: float, cg: ConcGrid, act: np.ndarray):
     return i0, i1, j0, j1, w00, w01, w10, w11
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def concentration_step(px, py, vol0, phi, s_int, gdot_int, t_int, cg, prm, work) -> int:
     """Advance φ^s_p over a subcycle of length t_int (s); return the number of FV substeps taken.
 
