@@ -72,13 +72,13 @@ def test_bar_period_within_one_percent(bar_runs):
 
 
 def test_bar_period_converges_with_refinement(bar_runs):
-    """With the clamped and free ends the error is boundary-limited: B-spline MPM without
-    boundary-modified shape functions places the free surface to O(h), so the expected order is 1
-    (the interior scheme is second order: see the periodic wave test below)."""
+    """Second order in h, like the interior scheme (periodic wave test below), because the clamped
+    end has image nodes (docs/model.md, "No-slip walls"). With plain fixed nodes the one-sided
+    B-spline basis at the clamp made it first order (4.2, 2.1, 1.0, 0.49 % at 8–64 cells)."""
     errs = {c: abs(measured_period(*bar_runs[c][:2]) - BAR_PERIOD) / BAR_PERIOD for c in bar_runs}
     order = math.log(errs[16] / errs[BAR_DEFAULT_CELLS]) / math.log(BAR_DEFAULT_CELLS / 16)
     assert errs[16] > errs[32] > errs[BAR_DEFAULT_CELLS]
-    assert 0.85 < order < 1.3, (errs, order)
+    assert 1.7 < order < 2.3, (errs, order)
 
 
 def test_periodic_wave_period_second_order():

@@ -182,6 +182,9 @@ class BoundaryConfig(_Section):
     #: walls at x = 0 and x = length in non-periodic scenarios (collapse, bar).
     walls: Literal["noslip", "slip", "friction"] = "slip"
     wall_friction: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.3
+    #: image (mirror) nodes behind no-slip walls: second-order wall kinematics (docs/model.md);
+    #: false gives plain fixed nodes, first order in h at the wall.
+    wall_images: bool = True
     #: time over which the sidewall friction and the tangential gravity ramp on, s (0 = at once).
     ramp_time: Annotated[float, Field(ge=0, le=1e3, allow_inf_nan=False)] = 0.0
 

@@ -40,8 +40,9 @@ TRANSFER_AFLIP = 2  # APIC affine transfer with a FLIP velocity update (Fei et a
     G_DTMIN,
     G_TRANSFER,  # TRANSFER_*
     G_FLIP,  # FLIP fraction (TRANSFER_FLIP)
+    G_IMAGES,  # 1: image (mirror) nodes behind no-slip walls that lie on a node plane
     G_NSLOTS,
-) = range(25)
+) = range(26)
 
 # scalar state carried between chunks (float64 array)
 (

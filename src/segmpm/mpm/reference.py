@@ -24,6 +24,7 @@ from .params import (
     G_GX,
     G_GY,
     G_H,
+    G_IMAGES,
     G_LX,
     G_NX,
     G_NY,
@@ -106,6 +107,61 @@ def _stencil(gp, x):
     return IX, IY, W, GX, GY, DX, DY
 
 
+def _image_planes_np(gp: np.ndarray, nx: int, ny: int) -> tuple[int, int, int]:
+    """Node indices of the no-slip walls with image nodes (−1: none), as mpm.transfer."""
+
+    def plane(coord: float, origin: float, n: int) -> int:
+        r = (coord - origin) / gp[G_H]
+        k = int(np.floor(r + 0.5))
+        return k if abs(r - k) <= 1e-6 and 1 <= k <= n - 2 else -1
+
+    if gp[G_IMAGES] == 0:
+        return -1, -1, -1
+    jb = plane(gp[G_BASE_Y], gp[G_Y0], ny) if gp[G_BASE_KIND] == BC_NOSLIP else -1
+    il = ih = -1
+    if not gp[G_PERIODIC]:
+        il = plane(gp[G_XLO], gp[G_X0], nx) if gp[G_XLO_KIND] == BC_NOSLIP else -1
+        ih = plane(gp[G_XHI], gp[G_X0], nx) if gp[G_XHI_KIND] == BC_NOSLIP else -1
+    return jb, il, ih
+
+
+#: parity of the P2G fields under the odd extension across a no-slip wall (m, mv, f, mp, mρ)
+_PARITY = np.array([1.0, -1.0, -1.0, -1.0, -1.0, 1.0, 1.0])
+
+
+def _fold_np(f: np.ndarray, jb: int, il: int, ih: int, gx: float, gy: float) -> None:
+    """Fold the fields (7, nx, ny) of the nodes behind each wall onto their mirrors."""
+    nx, ny = f.shape[1], f.shape[2]
+
+    def fold(src, dst):
+        g = f[(slice(None), *src)].copy()
+        g[3] += 2.0 * g[0] * gx
+        g[4] += 2.0 * g[0] * gy
+        f[(slice(None), *dst)] += _PARITY[:, None] * g
+        f[(slice(None), *src)] = 0.0
+
+    for k in range(1, jb + 1) if jb > 0 else ():
+        if jb + k < ny:
+            fold((slice(None), jb - k), (slice(None), jb + k))
+    for k in range(1, il + 1) if il > 0 else ():
+        if il + k < nx:
+            fold((il - k, slice(None)), (il + k, slice(None)))
+    for k in range(1, nx - ih) if ih > 0 else ():
+        if ih - k >= 0:
+            fold((ih + k, slice(None)), (ih - k, slice(None)))
+
+
+def _mirror_np(g: np.ndarray, jb: int, il: int, ih: int) -> None:
+    """Nodal values behind each wall: minus their mirrors'."""
+    nx, ny = g.shape
+    for k in range(1, jb + 1) if jb > 0 else ():
+        g[:, jb - k] = -g[:, jb + k if jb + k < ny else jb]
+    for k in range(1, il + 1) if il > 0 else ():
+        g[il - k, :] = -g[il + k if il + k < nx else il, :]
+    for k in range(1, nx - ih) if ih > 0 else ():
+        g[ih + k, :] = -g[ih - k if ih - k >= 0 else ih, :]
+
+
 def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> dict[str, np.ndarray]:
     """One step of the APIC/USL algorithm on copies of the state arrays; returns the new ones."""
     s = {k: np.array(v, dtype=np.float64, copy=True) for k, v in arrays.items()}
@@ -143,6 +199,11 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
     np.add.at(gmp, (IX, IY), mw * s["diag"][0][:, None, None])
     np.add.at(gmr, (IX, IY), mw * rho)
 
+    jb, il, ih = _image_planes_np(gp, nx, ny)
+    if max(jb, il, ih) > 0:
+        fields = np.stack([gm, gmx, gmy, gfx, gfy, gmp, gmr])
+        _fold_np(fields, jb, il, ih, gp[G_GX] * ramp, gp[G_GY])
+        gm, gmx, gmy, gfx, gfy, gmp, gmr = fields
     has = gm > 0
     safe = np.where(has, gm, 1.0)
     vox, voy = gmx / safe, gmy / safe
@@ -164,6 +225,8 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
     ox_, oy_ = apply_bc_np(gp, XN.ravel(), YN.ravel(), vox.ravel(), voy.ravel())
     gox = np.where(has, ox_.reshape(nx, ny), 0.0)
     goy = np.where(has, oy_.reshape(nx, ny), 0.0)
+    for g in (gvx, gvy, gox, goy):
+        _mirror_np(g, jb, il, ih)
 
     ux = gvx[IX, IY]
     uy = gvy[IX, IY]

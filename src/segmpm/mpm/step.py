@@ -20,6 +20,8 @@ from .params import (
     G_DTMAX,
     G_DTMIN,
     G_FLIP,
+    G_GX,
+    G_GY,
     G_H,
     G_LX,
     G_NX,
@@ -44,8 +46,10 @@ from .params import (
     TRANSFER_FLIP,
 )
 from .transfer import (
+    fold_images,
     gather,
     grid_update,
+    mirror_images,
     momentum_to_velocity,
     p2g,
     sort_into_strips,
@@ -236,14 +240,19 @@ def advance(
         sort_into_strips(x[1], gp, strip_start, cursor, order)
         pres = diag[0]
         p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, True)
+        fold_images(gp, grid, gp[G_GX] * ramp, gp[G_GY])
         grid_update(gp, grid, gv, gv_old, dt, ramp, True)
+        mirror_images(gp, gv)
+        mirror_images(gp, gv_old)
         if flip:
             x_old[:, :] = x
         update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_old, dt, flags)
         if flip:
             # MUSL: remap the updated point momenta (old positions), then the strain rate
             p2g(x_old, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, False)
+            fold_images(gp, grid, 0.0, 0.0)
             momentum_to_velocity(gp, grid, gv)
+            mirror_images(gp, gv)
             update_stress_musl(x, v, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, dt, x_old)
 
         sc[S_TIME] = t + dt

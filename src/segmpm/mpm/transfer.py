@@ -19,7 +19,24 @@ import numpy as np
 from numba import njit, prange
 
 from .boundary import apply_bc, sidewall_friction
-from .params import G_GX, G_GY, G_H, G_NX, G_PERIODIC, G_SIDEWALL, G_X0, G_Y0
+from .params import (
+    BC_NOSLIP,
+    G_BASE_KIND,
+    G_BASE_Y,
+    G_GX,
+    G_GY,
+    G_H,
+    G_IMAGES,
+    G_NX,
+    G_PERIODIC,
+    G_SIDEWALL,
+    G_X0,
+    G_XHI,
+    G_XHI_KIND,
+    G_XLO,
+    G_XLO_KIND,
+    G_Y0,
+)
 from .shape import bspline2
 
 
@@ -160,6 +177,107 @@ def p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds,
                 for i in range(strip_start[s], strip_start[s + 1]):
                     _scatter_point(order[i], x, v, C, mass, vol0, J, sig, pres, grid,
                                    h, x0, y0, nx, periodic, with_force)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def _node_plane(coord, origin, h, n):
+    """Index of the node plane at ``coord`` if it is one (and not the first or last), else −1."""
+    r = (coord - origin) / h
+    k = int(math.floor(r + 0.5))
+    if abs(r - k) > 1e-6 or k < 1 or k > n - 2:
+        return -1
+    return k
+
+
+@njit(cache=True, error_model="numpy")
+def image_planes(gp, nx, ny):
+    """Node indices (j_base, i_lo, i_hi) of the no-slip walls that get image nodes, −1 if none.
+
+    Images apply to no-slip walls that lie on a node plane, when ``G_IMAGES`` is set.
+    """
+    jb = -1
+    il = -1
+    ih = -1
+    if gp[G_IMAGES] == 0.0:
+        return jb, il, ih
+    h = gp[G_H]
+    if int(gp[G_BASE_KIND]) == BC_NOSLIP:
+        jb = _node_plane(gp[G_BASE_Y], gp[G_Y0], h, ny)
+    if gp[G_PERIODIC] == 0.0:
+        if int(gp[G_XLO_KIND]) == BC_NOSLIP:
+            il = _node_plane(gp[G_XLO], gp[G_X0], h, nx)
+        if int(gp[G_XHI_KIND]) == BC_NOSLIP:
+            ih = _node_plane(gp[G_XHI], gp[G_X0], h, nx)
+    return jb, il, ih
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _fold(grid, ig, jg, im, jm, gx, gy):
+    m = grid[ig, jg, N_MASS]
+    grid[im, jm, N_MASS] += m
+    grid[im, jm, N_MX] -= grid[ig, jg, N_MX]
+    grid[im, jm, N_MY] -= grid[ig, jg, N_MY]
+    # the weight on the image node is odd too: (m − m_g) g in all, with m g added later
+    grid[im, jm, N_FX] -= grid[ig, jg, N_FX] + 2.0 * m * gx
+    grid[im, jm, N_FY] -= grid[ig, jg, N_FY] + 2.0 * m * gy
+    grid[im, jm, N_MP] += grid[ig, jg, N_MP]
+    grid[im, jm, N_MRHO] += grid[ig, jg, N_MRHO]
+    for f in range(N_FIELDS):
+        grid[ig, jg, f] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def fold_images(gp, grid, gx, gy):
+    """Image nodes of no-slip walls (docs/model.md, "No-slip walls"): the P2G sums of a node
+    behind the wall fold onto its mirror node, with the velocity of the node behind the wall
+    slaved to minus that of its mirror (``mirror_images``), i.e. the Galerkin system on the odd
+    extension of the velocity across the wall: mass +, momentum −, force − (gravity included).
+    Without it the B-spline basis is one-sided at the wall and the wall kinematics are first
+    order in h. ``gx, gy``: the gravity applied to the nodes afterwards, per unit mass."""
+    nx = grid.shape[0]
+    ny = grid.shape[1]
+    jb, il, ih = image_planes(gp, nx, ny)
+    if jb > 0:
+        for i in range(nx):
+            for k in range(1, jb + 1):
+                if jb + k < ny:
+                    _fold(grid, i, jb - k, i, jb + k, gx, gy)
+    if il > 0:
+        for j in range(ny):
+            for k in range(1, il + 1):
+                if il + k < nx:
+                    _fold(grid, il - k, j, il + k, j, gx, gy)
+    if ih > 0:
+        for j in range(ny):
+            for k in range(1, nx - ih):
+                if ih - k >= 0:
+                    _fold(grid, ih + k, j, ih - k, j, gx, gy)
+
+
+@njit(cache=True, error_model="numpy")
+def mirror_images(gp, gv):
+    """Nodal velocities behind no-slip walls: minus those of their mirror nodes (``fold_images``)."""
+    nx = gv.shape[0]
+    ny = gv.shape[1]
+    jb, il, ih = image_planes(gp, nx, ny)
+    if jb > 0:
+        for i in range(nx):
+            for k in range(1, jb + 1):
+                jm = jb + k if jb + k < ny else jb
+                gv[i, jb - k, 0] = -gv[i, jm, 0]
+                gv[i, jb - k, 1] = -gv[i, jm, 1]
+    if il > 0:
+        for j in range(ny):
+            for k in range(1, il + 1):
+                im = il + k if il + k < nx else il
+                gv[il - k, j, 0] = -gv[im, j, 0]
+                gv[il - k, j, 1] = -gv[im, j, 1]
+    if ih > 0:
+        for j in range(ny):
+            for k in range(1, nx - ih):
+                im = ih - k if ih - k >= 0 else ih
+                gv[ih + k, j, 0] = -gv[im, j, 0]
+                gv[ih + k, j, 1] = -gv[im, j, 1]
 
 
 @njit(cache=True, error_model="numpy", parallel=True)

@@ -29,6 +29,7 @@ from ..mpm.params import (
     G_GX,
     G_GY,
     G_H,
+    G_IMAGES,
     G_LX,
     G_NSLOTS,
     G_NX,
@@ -115,6 +116,7 @@ def grid_record(
         cfg.grid.transfer
     ]
     gp[G_FLIP] = cfg.grid.flip_fraction
+    gp[G_IMAGES] = 1.0 if b.wall_images else 0.0
     return gp
 
 

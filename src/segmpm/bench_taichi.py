@@ -1,0 +1,141 @@
+"""The peer of ``segmpm bench``: Taichi's classic 2-D MLS-MPM fluid step ("mpm88") on the CPU.
+
+The algorithm of Hu et al. (2018, *ACM TOG* 37, 150) as in Taichi's ``mpm88`` example: quadratic
+B-splines, an APIC/MLS transfer, a weakly compressible fluid with pressure −E (J − 1), gravity and
+separating box walls, one P2G, grid update and G2P per step. Written here against the Taichi
+API (not copied), with particles at about four per cell in a square block of the unit box so that
+N particles can be set freely.
+
+Run one case per process (Taichi's thread count is fixed at ``ti.init``)::
+
+    python -m segmpm.bench_taichi --n 32000 --threads 2 --steps 400
+
+prints one JSON line: particle-steps per second, ns per particle-step, first-call seconds.
+Needs the optional ``bench`` extra (``pip install -e ".[bench]"``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+
+
+def run(n: int, threads: int, steps: int) -> dict[str, float]:
+    """Time ``steps`` mpm88 steps with ``n`` particles on ``threads`` CPU threads."""
+    import numpy as np
+    import taichi as ti
+
+    ti.init(arch=ti.cpu, cpu_max_num_threads=threads, default_fp=ti.f64, random_seed=0,
+            offline_cache=True, log_level=ti.ERROR)  # fmt: skip
+    side = 0.4  # particles fill [0.2, 0.6]², about 4 per cell
+    n_grid = max(16, int(round(math.sqrt(n / 4.0) / side)))
+    dx = 1.0 / n_grid
+    inv_dx = float(n_grid)
+    dt = 1e-4 * 128 / n_grid
+    p_vol = (dx * 0.5) ** 2
+    p_mass = p_vol * 1.0
+    gravity = 9.8
+    bound = 3
+    E = 400.0
+
+    x = ti.Vector.field(2, float, n)
+    v = ti.Vector.field(2, float, n)
+    C = ti.Matrix.field(2, 2, float, n)
+    J = ti.field(float, n)
+    grid_v = ti.Vector.field(2, float, (n_grid, n_grid))
+    grid_m = ti.field(float, (n_grid, n_grid))
+
+    @ti.kernel
+    def step():
+        for i, j in grid_m:
+            grid_v[i, j] = [0.0, 0.0]
+            grid_m[i, j] = 0.0
+        for p in x:
+            xp = x[p] * inv_dx
+            base = int(xp - 0.5)
+            fx = xp - base
+            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+            stress = -dt * 4.0 * E * p_vol * (J[p] - 1.0) * inv_dx * inv_dx
+            affine = ti.Matrix([[stress, 0.0], [0.0, stress]]) + p_mass * C[p]
+            for i, j in ti.static(ti.ndrange(3, 3)):
+                off = ti.Vector([i, j])
+                dpos = (off - fx) * dx
+                weight = w[i][0] * w[j][1]
+                grid_v[base + off] += weight * (p_mass * v[p] + affine @ dpos)
+                grid_m[base + off] += weight * p_mass
+        for i, j in grid_m:
+            if grid_m[i, j] > 0.0:
+                grid_v[i, j] /= grid_m[i, j]
+            grid_v[i, j][1] -= dt * gravity
+            if i < bound and grid_v[i, j][0] < 0.0:
+                grid_v[i, j][0] = 0.0
+            if i > n_grid - bound and grid_v[i, j][0] > 0.0:
+                grid_v[i, j][0] = 0.0
+            if j < bound and grid_v[i, j][1] < 0.0:
+                grid_v[i, j][1] = 0.0
+            if j > n_grid - bound and grid_v[i, j][1] > 0.0:
+                grid_v[i, j][1] = 0.0
+        for p in x:
+            xp = x[p] * inv_dx
+            base = int(xp - 0.5)
+            fx = xp - base
+            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2]
+            new_v = ti.Vector.zero(float, 2)
+            new_c = ti.Matrix.zero(float, 2, 2)
+            for i, j in ti.static(ti.ndrange(3, 3)):
+                off = ti.Vector([i, j])
+                dpos = (off - fx) * dx
+                weight = w[i][0] * w[j][1]
+                gv = grid_v[base + off]
+                new_v += weight * gv
+                new_c += 4.0 * inv_dx * inv_dx * weight * gv.outer_product(dpos)
+            v[p] = new_v
+            x[p] += dt * v[p]
+            J[p] *= 1.0 + dt * new_c.trace()
+            C[p] = new_c
+
+    rng = np.random.default_rng(0)
+    x.from_numpy(0.2 + side * rng.random((n, 2)))
+    v.from_numpy(np.zeros((n, 2)))
+    J.from_numpy(np.ones(n))
+    C.from_numpy(np.zeros((n, 2, 2)))
+    t0 = time.perf_counter()
+    step()
+    ti.sync()
+    first = time.perf_counter() - t0
+    for _ in range(max(1, steps // 10)):
+        step()
+    ti.sync()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        step()
+    ti.sync()
+    wall = time.perf_counter() - t0
+    return {
+        "n_points": n,
+        "threads": threads,
+        "steps": steps,
+        "wall_s": wall,
+        "particle_steps_per_s": steps * n / wall,
+        "ns_per_particle_step": wall / (steps * n) * 1e9,
+        "first_call_s": first,
+        "n_grid": n_grid,
+        "taichi": ti.__version__ if hasattr(ti, "__version__") else "",
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--n", type=int, required=True)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--steps", type=int, default=400)
+    a = ap.parse_args(argv)
+    print(json.dumps(run(a.n, a.threads, a.steps)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
