@@ -82,7 +82,9 @@ def main() -> int:
         print(f"a = {a:4.1f}: runout {r['runout']:6.2f} vs experiment {r['experiment']:6.2f} "
               f"({100 * r['relative_error']:+5.1f} %), KE end/max {r['kinetic_energy_final_over_max']:.1e}, "
               f"{r['wall_s']:.0f} s", flush=True)  # fmt: skip
-        (OUT / "collapse_runout.json").write_text(json.dumps({"L0": L0, "h": H_CELL, "results": results}, indent=2))
+        (OUT / "collapse_runout.json").write_text(
+            json.dumps({"L0": L0, "h": H_CELL, "results": results}, indent=2)
+        )
     a = np.array([r["aspect_ratio"] for r in results])
     fig, ax = plt.subplots(figsize=(5, 4))
     aa = np.linspace(0.3, 7, 200)

@@ -38,7 +38,16 @@ def run(scale: float, end: float) -> pathlib.Path:
            "--set", f"output.profile_times={times!r}", "--set", "output.fields=false",
            "--set", "output.checkpoint_interval=0.1"]  # fmt: skip
     if (out / "checkpoint" / "state.npz").exists():
-        cmd = [sys.executable, "-m", "segmpm.cli", "run", "--resume", "--out", str(out), "--no-progress"]
+        cmd = [
+            sys.executable,
+            "-m",
+            "segmpm.cli",
+            "run",
+            "--resume",
+            "--out",
+            str(out),
+            "--no-progress",
+        ]
     subprocess.run(cmd, check=True)
     return out
 
@@ -67,7 +76,9 @@ def main() -> int:
         usurf = float(np.nanmax(ur))
         summary["per_scale"][f"{s:g}"] = {
             "surface_velocity": float(np.nanmax(u)),
-            "rms_velocity_vs_reference_over_surface": float(np.sqrt(np.mean((u[ok] - ur[ok]) ** 2)) / usurf),
+            "rms_velocity_vs_reference_over_surface": float(
+                np.sqrt(np.mean((u[ok] - ur[ok]) ** 2)) / usurf
+            ),
             "rms_phi_vs_reference": float(np.sqrt(np.mean((phi[ok] - phr[ok]) ** 2))),
         }
         y = ds["y"].values * 1e3

@@ -8,7 +8,10 @@ reported apart. Results: particle-steps per second and ns per particle-step.
 
 from __future__ import annotations
 
+import importlib.util
+import json
 import platform
+import subprocess
 import sys
 import time
 from typing import Any
@@ -64,15 +67,34 @@ def bench_case(n_points: int, threads: int, steps: int) -> dict[str, Any]:
     }
 
 
-def run_bench(sizes: list[int], threads: list[int], steps: int, json_out: str | None) -> int:
-    """Run the benchmark grid, print a table, optionally write JSON; returns the exit code."""
+def peer_case(n_points: int, threads: int, steps: int) -> dict[str, Any] | None:
+    """The Taichi mpm88 fluid step at the same N and thread count (``segmpm.bench_taichi``), in its
+    own process; None if Taichi is not installed (the optional ``bench`` extra)."""
+    if importlib.util.find_spec("taichi") is None:
+        return None
+    cmd = [sys.executable, "-m", "segmpm.bench_taichi", "--n", str(n_points),
+           "--threads", str(threads), "--steps", str(steps)]  # fmt: skip
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
+    if out.returncode != 0 or not lines:
+        print(f"taichi peer failed: {out.stderr.strip()[-500:]}", file=sys.stderr)
+        return None
+    return json.loads(lines[-1])
+
+
+def run_bench(
+    sizes: list[int], threads: list[int], steps: int, json_out: str | None, peer: bool = True
+) -> int:
+    """Run the benchmark grid, print a table, optionally write JSON; returns the exit code.
+
+    With ``peer`` (and Taichi installed) every case is followed by the Taichi mpm88 fluid step at
+    the same N and thread count, and the ratio of the costs per particle-step is reported."""
     max_threads = numba.config.NUMBA_NUM_THREADS
     results = []
     print(f"segmpm {__version__} bench: seed chute (Fei model + sidewall + segregation), "
           f"{steps} timed steps per case, numba {numba.__version__}, up to {max_threads} threads")  # fmt: skip
-    print(
-        f"{'points':>8} {'threads':>7} {'Mpart-steps/s':>14} {'ns/part-step':>13} {'first call s':>13}"
-    )
+    print(f"{'points':>8} {'threads':>7} {'Mpart-steps/s':>14} {'ns/part-step':>13} "
+          f"{'first call s':>13} {'taichi ns':>10} {'ours/taichi':>11}")  # fmt: skip
     for n in sizes:
         for t in threads:
             if t > max_threads:
@@ -81,9 +103,16 @@ def run_bench(sizes: list[int], threads: list[int], steps: int, json_out: str | 
                 )
                 continue
             r = bench_case(n, t, steps)
+            q = peer_case(r["n_points"], t, steps) if peer else None
+            if q is not None:
+                r["taichi_mpm88"] = q
+                r["cost_ratio_vs_taichi"] = r["ns_per_particle_step"] / q["ns_per_particle_step"]
             results.append(r)
+            extra = (f"{q['ns_per_particle_step']:>10.1f} {r['cost_ratio_vs_taichi']:>11.2f}"
+                     if q is not None else f"{'-':>10} {'-':>11}")  # fmt: skip
             print(f"{r['n_points']:>8} {t:>7} {r['particle_steps_per_s'] / 1e6:>14.3f} "
-                  f"{r['ns_per_particle_step']:>13.1f} {r['first_call_s']:>13.2f}", flush=True)  # fmt: skip
+                  f"{r['ns_per_particle_step']:>13.1f} {r['first_call_s']:>13.2f} {extra}",
+                  flush=True)  # fmt: skip
     doc = {
         "segmpm_version": __version__,
         "machine": {

@@ -66,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts")
     p.add_argument("--steps", type=int, default=200, help="timed steps per case")
     p.add_argument("--json", dest="json_out", help="write the results to this JSON file")
+    p.add_argument("--no-peer", action="store_true", help="skip the Taichi mpm88 peer")
     return ap
 
 
@@ -114,7 +115,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "bench":
         from .bench import run_bench
 
-        return run_bench(args.sizes, args.threads, args.steps, args.json_out)
+        return run_bench(args.sizes, args.threads, args.steps, args.json_out, not args.no_peer)
     raise AssertionError(args.command)
 
 

@@ -1,8 +1,10 @@
 #!/usr/bin/env python
 """Plot reference_profiles.csv (phi_small, velocity_x, solid_fraction vs y) -> reference_profiles.png."""
+
 import os
 
 import matplotlib
+
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
@@ -15,11 +17,15 @@ for t, g in df.groupby("time_s"):
     ax[0].plot(g["phi_small"], y, label=f"t = {t:g} s")
     ax[1].plot(g["velocity_x"], y)
     ax[2].plot(g["solid_fraction"], y)
-ax[0].set_xlabel("phi_small"); ax[1].set_xlabel("velocity_x [m/s]"); ax[2].set_xlabel("solid fraction")
+ax[0].set_xlabel("phi_small")
+ax[1].set_xlabel("velocity_x [m/s]")
+ax[2].set_xlabel("solid fraction")
 ax[0].set_ylabel("y above glued-layer top [mm]")
-ax[0].set_xlim(0, 1); ax[0].legend(fontsize=8)
+ax[0].set_xlim(0, 1)
+ax[0].legend(fontsize=8)
 for a in ax:
-    a.axhline(0, color="k", lw=0.5); a.grid(alpha=0.3)
+    a.axhline(0, color="k", lw=0.5)
+    a.grid(alpha=0.3)
 fig.suptitle("DEM (LAMMPS) chute reference: 2/3 mm spheres, 26 deg, W = 22 mm, mu_w = 0.3")
 fig.tight_layout()
 fig.savefig(os.path.join(HERE, "reference_profiles.png"), dpi=110)

@@ -33,6 +33,7 @@ Definitions
   is the last target time and t >= T).  Bins with free solid fraction < 0.02
   are not written.
 """
+
 import glob
 import json
 import math
@@ -53,6 +54,7 @@ MIN_FREE_FRACTION = 0.02
 
 def read_dump(path):
     import gzip
+
     opener = gzip.open if path.endswith(".gz") else open
     with opener(path, "rt") as fh:
         lines = fh.readlines()
@@ -62,7 +64,7 @@ def read_dump(path):
             t = float(lines[i + 1])
         if ln.startswith("ITEM: ATOMS"):
             cols = ln.split()[2:]
-            data = np.loadtxt(lines[i + 1:])
+            data = np.loadtxt(lines[i + 1 :])
             break
     d = {c: data[:, k] for k, c in enumerate(cols)}
     d["type"] = d["type"].astype(int)
@@ -80,7 +82,7 @@ def slab_volume(zc, r, edges):
     """Volume of each sphere (centre zc, radius r) between consecutive edges.
     Returns array (n_particles, n_edges-1)."""
     h = np.clip(edges[None, :] - zc[:, None], -r[:, None], r[:, None])
-    F = math.pi * (r[:, None] ** 2 * h - h ** 3 / 3.0)
+    F = math.pi * (r[:, None] ** 2 * h - h**3 / 3.0)
     return np.diff(F, axis=1)
 
 
@@ -88,6 +90,7 @@ def overlaps(d):
     """Overlap / pair diameter for all contacts (grain-grain, grain-floor,
     grain-sidewall) of one snapshot.  Periodic in x via ghost copies."""
     from scipy.spatial import cKDTree
+
     x, y, z, r = d["x"], d["y"], d["z"], 0.5 * d["diameter"]
     n = len(x)
     idx = np.arange(n)
@@ -124,7 +127,11 @@ def profile(snaps, z0, zmax):
     kmax = int(math.ceil((zmax - z0) / DZ)) + 1
     edges = z0 + DZ * np.arange(kmin, kmax + 1)
     nb = len(edges) - 1
-    vs = np.zeros(nb); vf = np.zeros(nb); vall = np.zeros(nb); mom = np.zeros(nb); cnt = np.zeros(nb)
+    vs = np.zeros(nb)
+    vf = np.zeros(nb)
+    vall = np.zeros(nb)
+    mom = np.zeros(nb)
+    cnt = np.zeros(nb)
     for d in snaps:
         r = 0.5 * d["diameter"]
         V = slab_volume(d["z"], r, edges)
@@ -141,9 +148,14 @@ def profile(snaps, z0, zmax):
     slab = LX * W * DZ
     zc = 0.5 * (edges[:-1] + edges[1:])
     with np.errstate(invalid="ignore", divide="ignore"):
-        out = dict(y_m=zc - z0, phi_small=vs / vf, velocity_x=mom / vf,
-                   solid_fraction=vall / (ns * slab), solid_fraction_free=vf / (ns * slab),
-                   n_particles=cnt / ns)
+        out = dict(
+            y_m=zc - z0,
+            phi_small=vs / vf,
+            velocity_x=mom / vf,
+            solid_fraction=vall / (ns * slab),
+            solid_fraction_free=vf / (ns * slab),
+            n_particles=cnt / ns,
+        )
     ok = out["solid_fraction_free"] >= MIN_FREE_FRACTION
     return {k: v[ok] for k, v in out.items()}
 
@@ -151,9 +163,15 @@ def profile(snaps, z0, zmax):
 def summarise(T, p):
     """Surface velocity, static depth, top/bottom concentration of one profile."""
     sf = p["solid_fraction_free"]
-    bulk = np.median(sf[(p["y_m"] > 0.005) & (p["y_m"] < 0.025)]) if np.any((p["y_m"] > 0.005) & (p["y_m"] < 0.025)) else np.nan
+    bulk = (
+        np.median(sf[(p["y_m"] > 0.005) & (p["y_m"] < 0.025)])
+        if np.any((p["y_m"] > 0.005) & (p["y_m"] < 0.025))
+        else np.nan
+    )
     above = np.where(sf >= 0.5 * bulk)[0]
-    top = p["y_m"][above.max()] + 0.5 * DZ if len(above) else np.nan  # bed surface: last slab with f >= f_bulk/2
+    top = (
+        p["y_m"][above.max()] + 0.5 * DZ if len(above) else np.nan
+    )  # bed surface: last slab with f >= f_bulk/2
     surf = (p["y_m"] > top - 0.004) & (p["y_m"] <= top)
     us = float(np.average(p["velocity_x"][surf], weights=sf[surf])) if surf.any() else np.nan
     inside = (p["y_m"] > 0) & (p["y_m"] < top)
@@ -161,27 +179,45 @@ def summarise(T, p):
     y_static = float(p["y_m"][mov].min() - 0.5 * DZ) if mov.any() else np.nan
     nearbot = (p["y_m"] > 0) & (p["y_m"] < 0.005)
     neartop = (p["y_m"] > top - 0.005) & (p["y_m"] <= top)
-    return dict(time_s=T, bed_surface_y_m=float(top), bulk_solid_fraction=float(bulk),
-                surface_velocity_m_s=us,
-                static_bed_top_y_m_1pct=y_static,
-                velocity_at_y_5mm=float(np.interp(0.005, p["y_m"], p["velocity_x"])),
-                velocity_at_y_10mm=float(np.interp(0.010, p["y_m"], p["velocity_x"])),
-                phi_small_bottom_0_5mm=float(np.average(p["phi_small"][nearbot], weights=sf[nearbot])) if nearbot.any() else np.nan,
-                phi_small_top_5mm=float(np.average(p["phi_small"][neartop], weights=sf[neartop])) if neartop.any() else np.nan)
+    return dict(
+        time_s=T,
+        bed_surface_y_m=float(top),
+        bulk_solid_fraction=float(bulk),
+        surface_velocity_m_s=us,
+        static_bed_top_y_m_1pct=y_static,
+        velocity_at_y_5mm=float(np.interp(0.005, p["y_m"], p["velocity_x"])),
+        velocity_at_y_10mm=float(np.interp(0.010, p["y_m"], p["velocity_x"])),
+        phi_small_bottom_0_5mm=float(np.average(p["phi_small"][nearbot], weights=sf[nearbot]))
+        if nearbot.any()
+        else np.nan,
+        phi_small_top_5mm=float(np.average(p["phi_small"][neartop], weights=sf[neartop]))
+        if neartop.any()
+        else np.nan,
+    )
 
 
 def write_csv(path, rows, header):
-    cols = ["time_s", "y_m", "phi_small", "velocity_x", "solid_fraction", "n_particles",
-            "solid_fraction_free", "n_snapshots"]
+    cols = [
+        "time_s",
+        "y_m",
+        "phi_small",
+        "velocity_x",
+        "solid_fraction",
+        "n_particles",
+        "solid_fraction_free",
+        "n_snapshots",
+    ]
     with open(path, "w") as fh:
         for h in header:
             fh.write("# " + h + "\n")
         fh.write(",".join(cols) + "\n")
         for T, ns, p in rows:
             for i in range(len(p["y_m"])):
-                fh.write(f"{T:g},{p['y_m'][i]:.5f},{p['phi_small'][i]:.5f},{p['velocity_x'][i]:.6f},"
-                         f"{p['solid_fraction'][i]:.5f},{p['n_particles'][i]:.2f},"
-                         f"{p['solid_fraction_free'][i]:.5f},{ns}\n")
+                fh.write(
+                    f"{T:g},{p['y_m'][i]:.5f},{p['phi_small'][i]:.5f},{p['velocity_x'][i]:.6f},"
+                    f"{p['solid_fraction'][i]:.5f},{p['n_particles'][i]:.2f},"
+                    f"{p['solid_fraction_free'][i]:.5f},{ns}\n"
+                )
 
 
 def main():
@@ -218,14 +254,19 @@ def main():
         d0 = get(int(np.argmin(np.abs(times))))[1]
     dflow0 = get(int(np.argmin(np.abs(times))))[1]
     g0, g1 = d0["type"] == 3, dflow0["type"] == 3
-    assert np.allclose(d0["z"][g0], dflow0["z"][g1]), "glued layer differs between t=0 bed and flow run"
+    assert np.allclose(d0["z"][g0], dflow0["z"][g1]), (
+        "glued layer differs between t=0 bed and flow run"
+    )
     glued = d0["type"] == 3
     zg = d0["z"][glued]
     z0 = float(zg.mean() + R_L)
     free = ~glued
     vol = math.pi / 6 * d0["diameter"] ** 3
-    counts = {"small_free": int((d0["type"] == 1).sum()), "large_free": int((d0["type"] == 2).sum()),
-              "large_glued": int(glued.sum())}
+    counts = {
+        "small_free": int((d0["type"] == 1).sum()),
+        "large_free": int((d0["type"] == 2).sum()),
+        "large_glued": int(glued.sum()),
+    }
     vfree = float(vol[free].sum())
     vsmall = float(vol[d0["type"] == 1].sum())
 
@@ -234,7 +275,9 @@ def main():
             return [-1], True
         else:
             sel = np.where(np.abs(times - T) <= HALF_WIN + 1e-9)[0]
-            complete = (tlast >= T + HALF_WIN - 1e-9) or (T == PROFILE_TIMES[-1] and tlast >= T - 1e-9)
+            complete = (tlast >= T + HALF_WIN - 1e-9) or (
+                T == PROFILE_TIMES[-1] and tlast >= T - 1e-9
+            )
         return sel, complete
 
     def build(targets):
@@ -259,17 +302,25 @@ def main():
     for label, i in (("t0_settled", -1), ("latest", int(np.argmax(times)))):
         d = d0 if i == -1 else get(i)[1]
         rel, zp, wrel = overlaps(d)
-        base = zp < (z0 + 0.006)  # contacts in the bottom ~2 d_s above the datum, incl. with the glued layer
+        base = zp < (
+            z0 + 0.006
+        )  # contacts in the bottom ~2 d_s above the datum, incl. with the glued layer
+
         def st(a, f):
             return float(f(a)) if len(a) else None
-        ov[label] = dict(time_s=0.0 if i == -1 else float(times[i]), n_contacts=int(len(rel)),
-                         mean_overlap_over_d=st(rel, np.mean), max_overlap_over_d=st(rel, np.max),
-                         p99_overlap_over_d=st(rel, lambda a: np.percentile(a, 99)),
-                         n_contacts_over_1pct=int((rel > 0.01).sum()),
-                         base_mean_overlap_over_d=st(rel[base], np.mean),
-                         base_max_overlap_over_d=st(rel[base], np.max),
-                         wall_mean_overlap_over_d=st(wrel, np.mean),
-                         wall_max_overlap_over_d=st(wrel, np.max))
+
+        ov[label] = dict(
+            time_s=0.0 if i == -1 else float(times[i]),
+            n_contacts=int(len(rel)),
+            mean_overlap_over_d=st(rel, np.mean),
+            max_overlap_over_d=st(rel, np.max),
+            p99_overlap_over_d=st(rel, lambda a: np.percentile(a, 99)),
+            n_contacts_over_1pct=int((rel > 0.01).sum()),
+            base_mean_overlap_over_d=st(rel[base], np.mean),
+            base_max_overlap_over_d=st(rel[base], np.max),
+            wall_mean_overlap_over_d=st(wrel, np.mean),
+            wall_max_overlap_over_d=st(wrel, np.max),
+        )
 
     header = [
         "DEM reference (LAMMPS, see validation/dem/README.md) of the seed paper's chute case",
@@ -279,25 +330,44 @@ def main():
     ]
     write_csv(os.path.join(HERE, "reference_profiles.csv"), rows, header)
     write_csv(os.path.join(HERE, "reference_profiles_dense.csv"), rows_d, header)
-    meta = dict(datum_z0_m=z0, datum_definition="mean z of glued-grain centres + 1.5 mm (mean top of the glued layer)",
-                glued_centre_z_mean_m=float(zg.mean()), glued_centre_z_min_m=float(zg.min()),
-                glued_centre_z_max_m=float(zg.max()), glued_top_max_m=float(zg.max() + R_L),
-                bin_dz_m=DZ, binning="volume-weighted slab-cut spheres", half_window_s=HALF_WIN,
-                counts=counts, free_solid_volume_m3=vfree, small_volume_fraction_of_free=vsmall / vfree,
-                last_dump_time_s=tlast, n_dumps=len(files), run_info=info,
-                summary=summ, summary_dense=summ_d, overlap_check=ov)
+    meta = dict(
+        datum_z0_m=z0,
+        datum_definition="mean z of glued-grain centres + 1.5 mm (mean top of the glued layer)",
+        glued_centre_z_mean_m=float(zg.mean()),
+        glued_centre_z_min_m=float(zg.min()),
+        glued_centre_z_max_m=float(zg.max()),
+        glued_top_max_m=float(zg.max() + R_L),
+        bin_dz_m=DZ,
+        binning="volume-weighted slab-cut spheres",
+        half_window_s=HALF_WIN,
+        counts=counts,
+        free_solid_volume_m3=vfree,
+        small_volume_fraction_of_free=vsmall / vfree,
+        last_dump_time_s=tlast,
+        n_dumps=len(files),
+        run_info=info,
+        summary=summ,
+        summary_dense=summ_d,
+        overlap_check=ov,
+    )
     with open(os.path.join(HERE, "reference_profiles.json"), "w") as fh:
         json.dump(meta, fh, indent=1)
     with open(os.path.join(HERE, "results_summary.md"), "w") as fh:
-        fh.write("| t [s] | bed surface y [mm] | bulk f | u_surface [m/s] | u(y=10 mm) [m/s] | "
-                 "static below y [mm] (u < 1% u_s) | phi_s bottom 0-5 mm | phi_s top 5 mm |\n")
+        fh.write(
+            "| t [s] | bed surface y [mm] | bulk f | u_surface [m/s] | u(y=10 mm) [m/s] | "
+            "static below y [mm] (u < 1% u_s) | phi_s bottom 0-5 mm | phi_s top 5 mm |\n"
+        )
         fh.write("|---|---|---|---|---|---|---|---|\n")
         for sm in summ_d:
-            fh.write(f"| {sm['time_s']:g} | {sm['bed_surface_y_m'] * 1e3:.1f} | {sm['bulk_solid_fraction']:.3f} | "
-                     f"{sm['surface_velocity_m_s']:.3f} | {sm['velocity_at_y_10mm']:.4f} | "
-                     f"{sm['static_bed_top_y_m_1pct'] * 1e3:.1f} | {sm['phi_small_bottom_0_5mm']:.3f} | "
-                     f"{sm['phi_small_top_5mm']:.3f} |\n")
-    print(f"wrote profiles for t = {[r[0] for r in rows]} (last dump t = {tlast:g} s, datum z0 = {z0 * 1e3:.3f} mm)")
+            fh.write(
+                f"| {sm['time_s']:g} | {sm['bed_surface_y_m'] * 1e3:.1f} | {sm['bulk_solid_fraction']:.3f} | "
+                f"{sm['surface_velocity_m_s']:.3f} | {sm['velocity_at_y_10mm']:.4f} | "
+                f"{sm['static_bed_top_y_m_1pct'] * 1e3:.1f} | {sm['phi_small_bottom_0_5mm']:.3f} | "
+                f"{sm['phi_small_top_5mm']:.3f} |\n"
+            )
+    print(
+        f"wrote profiles for t = {[r[0] for r in rows]} (last dump t = {tlast:g} s, datum z0 = {z0 * 1e3:.3f} mm)"
+    )
     return 0
 
 

