@@ -4,13 +4,28 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from segmpm.cli import main
 
 
 def test_bench_writes_json(tmp_path, capsys):
     out = tmp_path / "bench.json"
     assert (
-        main(["bench", "--sizes", "600", "--threads", "1", "--steps", "20", "--json", str(out)])
+        main(
+            [
+                "bench",
+                "--sizes",
+                "600",
+                "--threads",
+                "1",
+                "--steps",
+                "20",
+                "--no-peer",
+                "--json",
+                str(out),
+            ]
+        )  # fmt: skip
         == 0
     )
     doc = json.loads(out.read_text())
@@ -19,3 +34,14 @@ def test_bench_writes_json(tmp_path, capsys):
     assert 300 < r["n_points"] < 1200  # about the requested size (whole cells of the seed depth)
     assert r["particle_steps_per_s"] > 0 and r["ns_per_particle_step"] > 0
     assert "Mpart-steps/s" in capsys.readouterr().out
+
+
+def test_bench_taichi_peer_runs_the_same_n():
+    """The mpm88 peer (optional ``bench`` extra) runs in its own process at the requested N and
+    reports its cost with the grid that keeps about four particles per cell."""
+    pytest.importorskip("taichi")
+    from segmpm.bench import peer_case
+
+    q = peer_case(2000, 1, 20)
+    assert q is not None and q["n_points"] == 2000 and q["steps"] == 20
+    assert q["ns_per_particle_step"] > 0 and q["n_grid"] == round((2000 / 4) ** 0.5 / 0.4)

@@ -51,10 +51,13 @@ def chute_run(theta, H, mu_w, scale, h, t_end):
 
 @pytest.mark.parametrize("theta, H", [(26.0, 0.006), (30.0, 0.008)])
 def test_bagnold_steady_surface_velocity_and_shape(theta, H):
-    rows, u, sim = chute_run(theta, H, 0.0, 1e-3, 2.5e-4, 0.6)
+    # h = 0.5 mm: 12–16 cells over the depth. With image nodes at the base the error is second
+    # order in h (+0.26 % / +0.12 % measured at h = 0.5 mm, +0.24 % / +0.10 % at 0.25 mm); without
+    # them the one-sided wall stencil gave +2.9 % / +2.1 % (first order: +1.6 % / +1.1 % at 0.25 mm)
+    rows, u, sim = chute_run(theta, H, 0.0, 1e-3, 5e-4, 0.6)
     th = bagnold(rows, H, theta)
-    assert abs(u[-1] / th[-1] - 1) < 0.02, (u[-1], th[-1])
-    assert np.sqrt(np.mean((u - th) ** 2)) / th[-1] < 0.02
+    assert abs(u[-1] / th[-1] - 1) < 0.01, (u[-1], th[-1])
+    assert np.sqrt(np.mean((u - th) ** 2)) / th[-1] < 0.01
     # the stress state: −σ_xy/σ_yy = tan θ in the interior, p linear in depth
     st = sim.state
     mid = (st.x[1] > 0.2 * H) & (st.x[1] < 0.8 * H)
