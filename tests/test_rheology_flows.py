@@ -168,13 +168,13 @@ def test_gas_transition_free_fall_and_recontact():
 
 
 def test_seed_strip_length_does_not_change_the_profiles():
-    """The default preset's 3-cell periodic strip is exact, not an approximation: the initial
+    """The default preset's 2-cell periodic strip is exact, not an approximation: the initial
     lattice is the same in every cell column and the layer is uniform along the slope, so the
     solution is invariant under a shift by one cell and a longer strip repeats it. The depth
-    profiles of a 3-cell and a 7-cell strip of the coupled seed case (flow + segregation) agree to
+    profiles of a 2-cell and a 7-cell strip of the coupled seed case (flow + segregation) agree to
     round-off after 0.05 s (about 4000 steps of the whole start-up transient)."""
     profiles = []
-    for cells in (3, 7):
+    for cells in (2, 7):
         sim = make_sim(
             [f"geometry.length={cells * 0.0005}", "time.end=0.05", "segregation.dt=1e-4"]
         )

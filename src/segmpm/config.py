@@ -269,9 +269,9 @@ class Config(_Section):
             )
         if kind in ("chute", "box"):
             n = g.length / h
-            if abs(n - round(n)) > 1e-6 * max(1.0, n) or round(n) < 3:
+            if abs(n - round(n)) > 1e-6 * max(1.0, n) or round(n) < 2:
                 raise ValueError(
-                    f"geometry.length = {g.length} must be a whole number (≥ 3) of grid.cell_size = {h} "
+                    f"geometry.length = {g.length} must be a whole number (≥ 2) of grid.cell_size = {h} "
                     f"cells for the periodic direction (got {n:.6g} cells)"
                 )
         if kind in ("chute", "box", "bar") and g.depth < h / self.grid.particles_per_cell:
