@@ -16,4 +16,4 @@ if __name__ == "__main__":
     out = pathlib.Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)
     stamp = datetime.date.today().isoformat()
-    sys.exit(run_bench([8000, 32000, 128000], [1, 2], 200, str(out / f"bench-{stamp}.json")))
+    sys.exit(run_bench([8000, 32000, 128000], [1, 2], 400, str(out / f"bench-{stamp}.json")))

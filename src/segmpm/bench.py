@@ -28,15 +28,11 @@ def _config_for(n_points: int):
     h = base.grid.cell_size
     ppc = base.grid.particles_per_cell
     rows = round(base.geometry.depth / (h / ppc))
-    cells = max(3, round(n_points / rows / ppc))
+    cells = max(2, round(n_points / rows / ppc))
+    # the production configuration: the concentration subcycle every segregation.dt = 1e-3 s,
+    # i.e. about every 70 steps, so a few hundred timed steps include several of them
     return load_config(
-        overrides=[
-            "output.progress=false",
-            "output.fields=false",
-            f"geometry.length={cells * h!r}",
-            # the segregation subcycle every 1e-4 s so that it is part of the timed steps
-            "segregation.dt=1e-4",
-        ]
+        overrides=["output.progress=false", "output.fields=false", f"geometry.length={cells * h!r}"]
     )
 
 

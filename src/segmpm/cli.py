@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="throughput benchmarks (particle-steps per second)")
     p.add_argument("--sizes", type=int, nargs="+", default=[8000, 32000], help="material points")
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts")
-    p.add_argument("--steps", type=int, default=200, help="timed steps per case")
+    p.add_argument("--steps", type=int, default=400, help="timed steps per case")
     p.add_argument("--json", dest="json_out", help="write the results to this JSON file")
     p.add_argument("--no-peer", action="store_true", help="skip the Taichi mpm88 peer")
     return ap

@@ -178,14 +178,31 @@ def prime(J, eps, sig, phi, diag, mp, v):
         _stress(p, 0.0, 0.0, 0.0, 0.0, 0.0, v, J, eps, sig, phi, diag, s, g, mp)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def _check(x, v, J, sig, diag, flags):
-    """Reduce the per-point flags and speeds; returns (status, index, smax, numax)."""
+    """Reduce the per-point flags and speeds; returns (status, index, smax, numax).
+
+    The index is the first failing point in index order (a min-reduction), so the diagnostic does
+    not depend on the thread count."""
     n = J.shape[0]
     smax = 0.0
     numax = 0.0
-    for p in range(n):
-        f = flags[p]
+    bad = n
+    for p in prange(n):
+        ok = (
+            flags[p] == ST_OK
+            and math.isfinite(x[0, p])
+            and math.isfinite(x[1, p])
+            and math.isfinite(diag[4, p])
+            and math.isfinite(sig[0, p] + sig[1, p] + sig[2, p] + sig[3, p])
+            and J[p] > 0.0
+        )
+        if not ok:
+            bad = min(bad, p)
+        smax = max(smax, diag[4, p])
+        numax = max(numax, diag[5, p])
+    if bad < n:
+        p = bad
         finite = (
             math.isfinite(x[0, p])
             and math.isfinite(x[1, p])
@@ -193,14 +210,7 @@ def _check(x, v, J, sig, diag, flags):
             and math.isfinite(sig[0, p] + sig[1, p] + sig[2, p] + sig[3, p])
             and J[p] > 0.0
         )
-        if not finite:
-            return ST_NONFINITE, p, smax, numax
-        if f != ST_OK:
-            return f, p, smax, numax
-        if diag[4, p] > smax:
-            smax = diag[4, p]
-        if diag[5, p] > numax:
-            numax = diag[5, p]
+        return (ST_NONFINITE if not finite else flags[p]), p, smax, numax
     return ST_OK, -1, smax, numax
 
 

@@ -57,24 +57,25 @@ STRIP = 3
 N_MASS, N_MX, N_MY, N_FX, N_FY, N_MP, N_MRHO, N_FIELDS = range(8)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def sort_into_strips(py, gp, strip_start, cursor, order):
-    """Stable counting sort of the points by strip (``STRIP`` cell rows); ``order`` lists them."""
+    """Stable counting sort of the points by strip (``STRIP`` cell rows); ``order`` lists them.
+
+    The strip of each point is found in parallel; the counting and the stable scatter are serial
+    (integer work only), so ``order`` does not depend on the thread count."""
     h = gp[G_H]
     y0 = gp[G_Y0]
     ns = strip_start.shape[0] - 1
-    strip_start[:] = 0
     n = py.shape[0]
-    for p in range(n):
+    for p in prange(n):
         s = int(math.floor((py[p] - y0) / h)) // STRIP
-        s = min(max(s, 0), ns - 1)
-        cursor[p] = s
-        strip_start[s + 1] += 1
+        cursor[p] = min(max(s, 0), ns - 1)
+    strip_start[:] = 0
+    for p in range(n):
+        strip_start[cursor[p] + 1] += 1
     for s in range(ns):
         strip_start[s + 1] += strip_start[s]
-    fill = np.empty(ns, dtype=np.int64)
-    for s in range(ns):
-        fill[s] = strip_start[s]
+    fill = strip_start[:ns].copy()
     for p in range(n):
         s = cursor[p]
         order[fill[s]] = p
