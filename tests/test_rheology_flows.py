@@ -187,3 +187,20 @@ def test_seed_strip_length_does_not_change_the_profiles():
         np.testing.assert_allclose(a[key], b[key], rtol=0, atol=1e-9 * scale, err_msg=key)
     assert np.nanmax(b["velocity_x"]) > 1e-3  # it flowed
     assert np.nanstd(b["phi_small"]) > 0  # and segregated
+
+
+def test_closed_form_module_matches_the_test_oracle():
+    """segmpm.analysis.closed_form (used by validation/chute_closed_form.py) gives the same
+    profiles as this file's independent transcription of physics.md (4.1)–(4.2)."""
+    from segmpm.analysis.closed_form import bagnold_velocity, sidewall_velocity
+    from segmpm.config import load_config
+
+    for theta, H, mu_w in ((26.0, 0.006, 0.3), (31.0, 0.02, 0.15)):
+        cfg = load_config(overrides=[f"geometry.slope_deg={theta}", f"geometry.depth={H}",
+                                     f"boundary.sidewall_friction={mu_w}"])  # fmt: skip
+        y = np.linspace(0, H, 50)
+        np.testing.assert_allclose(bagnold_velocity(cfg, y), bagnold(y, H, theta), rtol=1e-12)
+        u, zf = sidewall_velocity(cfg, y)
+        u_ref, zf_ref = sidewall(y, H, theta, mu_w)
+        np.testing.assert_allclose(u, u_ref, rtol=1e-12, atol=1e-15)
+        assert zf == zf_ref
