@@ -5,7 +5,7 @@ friction, no segregation) for aspect ratios a = H0/L0 from 0.5 to 6 and compares
 runout (L∞ − L0)/L0 with the rectangular-channel experiments of Lube et al. (2005) and Lajeunesse,
 Monnier & Homsy (2005): ≈ 1.2 a for a ≲ 2.8 and ≈ 1.9 a^{2/3} above. Writes
 validation/results/collapse_runout.json and .png. Usage:
-    python validation/collapse_runout.py [--cell 5e-4] [--ratios 0.5 1 2 3 4 6]
+    python validation/collapse_runout.py [--cell 5e-4] [--ratios 0.5 1 2 3 4 6] [--base friction]
 A cell size other than the default writes collapse_runout_h<cell>.{json,png} (resolution check).
 """
 
@@ -44,7 +44,7 @@ def front(sim: Simulation) -> float:
     return float(order[-3]) if order.size > 3 else float(order[-1])
 
 
-def run(a: float, H_CELL: float = H_CELL) -> dict:
+def run(a: float, H_CELL: float = H_CELL, base: str = "noslip", base_mu: float = 0.5) -> dict:
     H0 = a * L0
     length = L0 * (2.0 + 1.6 * experiment(a))
     length = math.ceil(length / H_CELL) * H_CELL
@@ -53,7 +53,7 @@ def run(a: float, H_CELL: float = H_CELL) -> dict:
         "scenario.kind='collapse'", "geometry.slope_deg=0", f"geometry.length={length!r}",
         f"geometry.column_width={L0}", f"geometry.column_height={H0!r}", "geometry.headroom=0.3",
         f"grid.cell_size={H_CELL}", "material.stiffness_scale=1e-3", "segregation.model='none'",
-        "boundary.sidewall_friction=0", "boundary.base='noslip'", "boundary.walls='slip'",
+        "boundary.sidewall_friction=0", f"boundary.base='{base}'", f"boundary.base_friction={base_mu!r}", "boundary.walls='slip'",
         f"time.end={t_end!r}", "output.progress=false", "output.fields=false",
     ])  # fmt: skip
     sim = Simulation(cfg)
@@ -80,18 +80,33 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--cell", type=float, default=H_CELL)
     ap.add_argument("--ratios", type=float, nargs="+", default=[0.5, 1.0, 2.0, 3.0, 4.0, 6.0])
+    ap.add_argument("--base", choices=["noslip", "friction", "slip"], default="noslip")
+    ap.add_argument("--base-friction", type=float, default=0.5)
     args = ap.parse_args()
     stem = "collapse_runout" if args.cell == H_CELL else f"collapse_runout_h{args.cell:g}"
+    if args.base != "noslip":
+        stem += (
+            f"_{args.base}{args.base_friction:g}" if args.base == "friction" else f"_{args.base}"
+        )
     OUT.mkdir(exist_ok=True)
     results = []
     for a in args.ratios:
-        r = run(a, args.cell)
+        r = run(a, args.cell, args.base, args.base_friction)
         results.append(r)
         print(f"a = {a:4.1f}: runout {r['runout']:6.2f} vs experiment {r['experiment']:6.2f} "
               f"({100 * r['relative_error']:+5.1f} %), KE end/max {r['kinetic_energy_final_over_max']:.1e}, "
               f"{r['wall_s']:.0f} s", flush=True)  # fmt: skip
         (OUT / f"{stem}.json").write_text(
-            json.dumps({"L0": L0, "h": args.cell, "results": results}, indent=2)
+            json.dumps(
+                {
+                    "L0": L0,
+                    "h": args.cell,
+                    "base": args.base,
+                    "base_friction": args.base_friction,
+                    "results": results,
+                },
+                indent=2,
+            )  # fmt: skip
         )
     a = np.array([r["aspect_ratio"] for r in results])
     fig, ax = plt.subplots(figsize=(5, 4))
