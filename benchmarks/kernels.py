@@ -82,9 +82,11 @@ def main() -> int:
                 w["gv_old"],
                 dt,
                 w["flags"],
+                w["cursor"],
+                w["strip_start"].shape[0] - 1,
             ),
         ),  # fmt: skip
-        "check": lambda: stepmod._check(x, v, J, sig, diag, w["flags"]),
+        "check (MUSL path only)": lambda: stepmod._check(x, v, J, sig, diag, w["flags"]),
         "concentration step (per call)": lambda: concentration_step(
             x[0],
             x[1],

@@ -46,13 +46,15 @@ from .params import (
     TRANSFER_FLIP,
 )
 from .transfer import (
+    counting_sort,
     fold_images,
     gather,
     grid_update,
     mirror_images,
     momentum_to_velocity,
     p2g,
-    sort_into_strips,
+    strip_index,
+    strip_of,
 )
 
 
@@ -107,11 +109,14 @@ def _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, gv, gv_old, mp,
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_old, dt, flags):
+def update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_old, dt, flags,
+                  cursor, nstrips):  # fmt: skip
     """G2P (APIC, AFLIP, or the FLIP/PIC blend of MUSL), advection, J, and the material update.
 
     ``diag`` (6, N): pressure, shear rate, inertial number, driver S, c + |v|, ν.
-    ``flags[p]``: 0 ok, ST_NONFINITE or ST_LEFT_GRID.
+    ``flags[p]``: 0 ok, ST_NONFINITE or ST_LEFT_GRID. ``cursor[p]`` receives the P2G strip of the
+    new position (for the next step's sort). Returns the step check of ``_check`` fused into the
+    same parallel loop: (status, first failing point, max c + |v|, max ν).
     """
     n = x.shape[1]
     mode = int(gp[G_TRANSFER])
@@ -122,9 +127,18 @@ def update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_
     y0 = gp[G_Y0]
     nx = int(gp[G_NX])
     periodic = gp[G_PERIODIC] != 0.0
+    smax = 0.0
+    numax = 0.0
+    bad = n
     for p in prange(n):
         _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, gv, gv_old, mp, dt, flags,
                    h, x0, y0, nx, periodic, lx, mode, alpha, gp)  # fmt: skip
+        cursor[p] = strip_of(x[1, p], y0, h, nstrips)
+        if not _point_ok(p, x, J, sig, diag, flags):
+            bad = min(bad, p)
+        smax = max(smax, diag[4, p])
+        numax = max(numax, diag[5, p])
+    return _status(bad, n, x, J, sig, diag, flags), (bad if bad < n else -1), smax, numax
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
@@ -178,40 +192,46 @@ def prime(J, eps, sig, phi, diag, mp, v):
         _stress(p, 0.0, 0.0, 0.0, 0.0, 0.0, v, J, eps, sig, phi, diag, s, g, mp)
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _finite(p, x, J, sig, diag):
+    return (
+        math.isfinite(x[0, p])
+        and math.isfinite(x[1, p])
+        and math.isfinite(diag[4, p])
+        and math.isfinite(sig[0, p] + sig[1, p] + sig[2, p] + sig[3, p])
+        and J[p] > 0.0
+    )
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _point_ok(p, x, J, sig, diag, flags):
+    return flags[p] == ST_OK and _finite(p, x, J, sig, diag)
+
+
+@njit(cache=True, error_model="numpy")
+def _status(bad, n, x, J, sig, diag, flags):
+    """Status of the first failing point ``bad`` (n: none)."""
+    if bad >= n:
+        return ST_OK
+    return ST_NONFINITE if not _finite(bad, x, J, sig, diag) else flags[bad]
+
+
 @njit(cache=True, error_model="numpy", parallel=True)
 def _check(x, v, J, sig, diag, flags):
     """Reduce the per-point flags and speeds; returns (status, index, smax, numax).
 
     The index is the first failing point in index order (a min-reduction), so the diagnostic does
-    not depend on the thread count."""
+    not depend on the thread count. (The APIC/AFLIP path does this inside ``update_points``.)"""
     n = J.shape[0]
     smax = 0.0
     numax = 0.0
     bad = n
     for p in prange(n):
-        ok = (
-            flags[p] == ST_OK
-            and math.isfinite(x[0, p])
-            and math.isfinite(x[1, p])
-            and math.isfinite(diag[4, p])
-            and math.isfinite(sig[0, p] + sig[1, p] + sig[2, p] + sig[3, p])
-            and J[p] > 0.0
-        )
-        if not ok:
+        if not _point_ok(p, x, J, sig, diag, flags):
             bad = min(bad, p)
         smax = max(smax, diag[4, p])
         numax = max(numax, diag[5, p])
-    if bad < n:
-        p = bad
-        finite = (
-            math.isfinite(x[0, p])
-            and math.isfinite(x[1, p])
-            and math.isfinite(diag[4, p])
-            and math.isfinite(sig[0, p] + sig[1, p] + sig[2, p] + sig[3, p])
-            and J[p] > 0.0
-        )
-        return (ST_NONFINITE if not finite else flags[p]), p, smax, numax
-    return ST_OK, -1, smax, numax
+    return _status(bad, n, x, J, sig, diag, flags), (bad if bad < n else -1), smax, numax
 
 
 @njit(cache=True, error_model="numpy")
@@ -231,6 +251,7 @@ def advance(
     h = gp[G_H]
     cfl = gp[G_CFL]
     flip = gp[G_TRANSFER] == TRANSFER_FLIP
+    nstrips = strip_start.shape[0] - 1
     steps = 0
     while steps < max_steps and sc[S_TIME] < t_stop:
         t = sc[S_TIME]
@@ -247,7 +268,9 @@ def advance(
         if gp[G_RAMP] > 0.0:
             ramp = min(1.0, (t + dt) / gp[G_RAMP])
 
-        sort_into_strips(x[1], gp, strip_start, cursor, order)
+        if steps == 0:
+            strip_index(x[1], gp, cursor, nstrips)
+        counting_sort(cursor, strip_start, order)
         pres = diag[0]
         p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, True)
         fold_images(gp, grid, gp[G_GX] * ramp, gp[G_GY])
@@ -256,7 +279,26 @@ def advance(
         mirror_images(gp, gv_old)
         if flip:
             x_old[:, :] = x
-        update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_old, dt, flags)
+        status, idx, smax, numax = update_points(
+            x,
+            v,
+            C,
+            J,
+            eps,
+            sig,
+            phi,
+            diag,
+            s_int,
+            g_int,
+            gp,
+            mp,
+            gv,
+            gv_old,
+            dt,
+            flags,
+            cursor,
+            nstrips,
+        )
         if flip:
             # MUSL: remap the updated point momenta (old positions), then the strain rate
             p2g(x_old, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, False)
@@ -270,7 +312,8 @@ def advance(
         sc[S_DT] = dt
         sc[S_TSEG] += dt
         steps += 1
-        status, idx, smax, numax = _check(x, v, J, sig, diag, flags)
+        if flip:
+            status, idx, smax, numax = _check(x, v, J, sig, diag, flags)
         sc[S_SMAX] = smax
         sc[S_NUMAX] = numax
         if status != ST_OK:

@@ -56,19 +56,29 @@ STRIP = 3
 N_MASS, N_MX, N_MY, N_FX, N_FY, N_MP, N_MRHO, N_FIELDS = range(8)
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
-def sort_into_strips(py, gp, strip_start, cursor, order):
-    """Stable counting sort of the points by strip (``STRIP`` cell rows); ``order`` lists them.
+@njit(cache=True, error_model="numpy", inline="always")
+def strip_of(y, y0, h, nstrips):
+    """P2G strip (``STRIP`` cell rows) of a point at height y, clamped to [0, nstrips)."""
+    s = int(math.floor((y - y0) / h)) // STRIP
+    return min(max(s, 0), nstrips - 1)
 
-    The strip of each point is found in parallel; the counting and the stable scatter are serial
-    (integer work only), so ``order`` does not depend on the thread count."""
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def strip_index(py, gp, cursor, nstrips):
+    """``cursor[p]``: the strip of every point (the time loop gets it from G2P afterwards)."""
     h = gp[G_H]
     y0 = gp[G_Y0]
+    for p in prange(py.shape[0]):
+        cursor[p] = strip_of(py[p], y0, h, nstrips)
+
+
+@njit(cache=True, error_model="numpy")
+def counting_sort(cursor, strip_start, order):
+    """Stable counting sort of the points by strip ``cursor``: ``order`` lists them strip by strip
+    and ``strip_start`` holds the strips' offsets (integer work only, so independent of the
+    thread count)."""
     ns = strip_start.shape[0] - 1
-    n = py.shape[0]
-    for p in prange(n):
-        s = int(math.floor((py[p] - y0) / h)) // STRIP
-        cursor[p] = min(max(s, 0), ns - 1)
+    n = cursor.shape[0]
     strip_start[:] = 0
     for p in range(n):
         strip_start[cursor[p] + 1] += 1
@@ -79,6 +89,13 @@ def sort_into_strips(py, gp, strip_start, cursor, order):
         s = cursor[p]
         order[fill[s]] = p
         fill[s] += 1
+
+
+@njit(cache=True, error_model="numpy")
+def sort_into_strips(py, gp, strip_start, cursor, order):
+    """Strip of every point and the stable counting sort (``strip_index`` + ``counting_sort``)."""
+    strip_index(py, gp, cursor, strip_start.shape[0] - 1)
+    counting_sort(cursor, strip_start, order)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
