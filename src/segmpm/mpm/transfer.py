@@ -100,8 +100,7 @@ def sort_into_strips(py, gp, strip_start, cursor, order):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, grid, h, x0, y0, nx, periodic, force):
-    """P2G of one point onto its 3 × 3 nodes (a plain function: LLVM inlines it into the parallel
-    loop, where a Numba-inlined tuple-returning helper would trip the parfor analysis)."""
+    """P2G of one point onto its 3 × 3 nodes: mass, APIC momentum, internal force, m p and m ρ."""
     xp = x[0, p]
     yp = x[1, p]
     bx, wx0, wx1, wx2, dx0, dx1, dx2 = bspline2((xp - x0) / h)
