@@ -294,8 +294,13 @@ class Config(_Section):
         n_particles = area / (h / ppc) ** 2
         n_nodes = (extent_x / h + 5) * (extent_y / h + 5)
         if n_particles > MAX_PARTICLES or n_nodes > MAX_NODES:
+            if kind == "collapse":
+                dims = (f"geometry.length = {g.length}, geometry.column_width = {g.column_width}, "
+                        f"geometry.column_height = {g.column_height}")  # fmt: skip
+            else:
+                dims = f"geometry.length = {g.length}, geometry.depth = {g.depth}"
             raise ValueError(
-                f"grid.cell_size = {h} gives about {n_particles:.3g} material points and "
+                f"grid.cell_size = {h} with {dims} gives about {n_particles:.3g} material points and "
                 f"{n_nodes:.3g} grid nodes; allowed at most {MAX_PARTICLES:.3g} points and "
                 f"{MAX_NODES:.3g} nodes (about {n_particles * 400 / 1e9:.2g} GB): "
                 "increase grid.cell_size or reduce the geometry"
