@@ -13,9 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
-from conftest import SUBPROCESS_ENV
+from conftest import SUBPROCESS_ENV, make_sim
 
 from segmpm.cli import main
+from segmpm.mpm.params import ST_LEFT_GRID
+from segmpm.simulation import SimulationError
 
 SMALL = [
     "geometry.depth=0.006", "geometry.length=0.002", "time.end=0.5",
@@ -154,3 +156,15 @@ def test_results_do_not_depend_on_thread_count():
     numba.set_num_threads(1)  # back to the suite default (conftest)
     for k in states[0]:
         np.testing.assert_array_equal(states[0][k], states[1][k], err_msg=k)
+
+
+def test_a_failed_state_is_not_advanced_again():
+    """After a failure (here a point thrown out of the grid) the compiled loop is not re-entered:
+    P2G of a point outside the grid would write outside the grid arrays."""
+    sim = make_sim(["geometry.depth=0.002", "geometry.length=0.002", "geometry.headroom=0.5",
+                    "segregation.model='none'"])  # fmt: skip
+    sim.state.v[1, -1] = 50.0  # one point leaves through the top within a few steps
+    status, idx, _ = sim.advance(1.0, 1000)
+    assert status == ST_LEFT_GRID and idx == sim.state.n - 1
+    with pytest.raises(SimulationError, match="cannot be advanced"):
+        sim.advance(1.0, 10)

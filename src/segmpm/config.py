@@ -196,6 +196,9 @@ class TimeConfig(_Section):
     end: Annotated[float, Field(gt=0, le=1e5, allow_inf_nan=False)] = 20.0
     #: Courant number of the time step Δt = CFL h / max(c + |v|).
     cfl: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.4
+    #: C_ν of the viscous limit Δt ≤ C_ν h²/(2 max ν); explicit diffusion in 2-D is stable for
+    #: C_ν < 0.5, so it is kept apart from the Courant number.
+    viscous_number: Annotated[float, Field(gt=0, lt=0.5, allow_inf_nan=False)] = 0.4
     #: largest time step, s.
     dt_max: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 1.0e-3
     #: the run fails (exit 3) if Δt falls below this, s.

@@ -89,6 +89,7 @@ class Simulation:
         self.state: State = build(self.config)
         self._initial = self._invariants()
         self._primed = False
+        self._failed: tuple[int, int] | None = None
         self.wall_time = 0.0
         self._interrupt: int | None = None
         grid_top = self.state.gp[G_Y0] + (self.state.gp[G_NY] - 1) * self.state.gp[G_H]
@@ -116,7 +117,18 @@ class Simulation:
         self._primed = True
 
     def advance(self, t_stop: float, max_steps: int) -> tuple[int, int, int]:
-        """One call of the compiled loop; returns (status, point index, steps taken)."""
+        """One call of the compiled loop; returns (status, point index, steps taken).
+
+        After a failure status the state is not advanced again (a point outside the grid would
+        make P2G write outside it): a second call raises :class:`SimulationError`; load a
+        checkpoint to continue."""
+        if self._failed is not None:
+            status, idx = self._failed
+            raise SimulationError(
+                "the state failed at an earlier step and cannot be advanced: "
+                + self._failure_message(status, idx),
+                self._diagnostic(status, idx),
+            )
         self._prime()
         st, w = self.state, self.state.work
         t0 = _time.perf_counter()
@@ -127,6 +139,8 @@ class Simulation:
             st.seg_prm, st.cg, st.seg_work, float(t_stop), int(max_steps),
         )  # fmt: skip
         self.wall_time += _time.perf_counter() - t0
+        if status != ST_OK:
+            self._failed = (int(status), int(idx))
         return int(status), int(idx), int(n)
 
     def advance_to(self, t: float, chunk_steps: int | None = None) -> None:
@@ -378,6 +392,7 @@ class Simulation:
         self._initial = meta["initial"]
         self.wall_time = float(meta.get("wall_time", 0.0))
         self._primed = True
+        self._failed = None
 
     # --------------------------------------------------------------------------- signals
     def _install_signals(self) -> None:

@@ -41,8 +41,10 @@ TRANSFER_AFLIP = 2  # APIC affine transfer with a FLIP velocity update (Fei et a
     G_TRANSFER,  # TRANSFER_*
     G_FLIP,  # FLIP fraction (TRANSFER_FLIP)
     G_IMAGES,  # 1: image (mirror) nodes behind no-slip walls that lie on a node plane
+    G_VISC,  # viscous number: Δt ≤ G_VISC h²/(2 ν_max)
+    G_CFLOOR,  # floor on the wave speed of the time step, m/s (the loaded material's c)
     G_NSLOTS,
-) = range(26)
+) = range(28)
 
 # scalar state carried between chunks (float64 array)
 (

@@ -19,6 +19,7 @@ from .params import (
     G_BASE_MU,
     G_BASE_Y,
     G_CFL,
+    G_CFLOOR,
     G_DTMAX,
     G_FLIP,
     G_GX,
@@ -32,6 +33,7 @@ from .params import (
     G_RAMP,
     G_SIDEWALL,
     G_TRANSFER,
+    G_VISC,
     G_WALL_MU,
     G_X0,
     G_XHI,
@@ -170,10 +172,11 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
     h = gp[G_H]
     nx, ny = int(gp[G_NX]), int(gp[G_NY])
     dt = gp[G_DTMAX]
-    if sc[S_SMAX] > 0:
-        dt = min(dt, gp[G_CFL] * h / sc[S_SMAX])
+    smax = max(sc[S_SMAX], gp[G_CFLOOR])
+    if smax > 0:
+        dt = min(dt, gp[G_CFL] * h / smax)
     if sc[S_NUMAX] > 0:
-        dt = min(dt, gp[G_CFL] * h * h / (2 * sc[S_NUMAX]))
+        dt = min(dt, gp[G_VISC] * h * h / (2 * sc[S_NUMAX]))
     t = sc[S_TIME]
     ramp = min(1.0, (t + dt) / gp[G_RAMP]) if gp[G_RAMP] > 0 else 1.0
 

@@ -2,7 +2,7 @@
 segregation sub-step, until a target time or a step budget, without returning to Python.
 
 The time step is recomputed every step from the current state (physics.md §5.5):
-Δt = min(C_cfl h / max_p(c_p + |v_p|), C_cfl h² / (2 max_p ν_p), Δt_max).
+Δt = min(C_cfl h / max_p(c_p + |v_p|), C_ν h² / (2 max_p ν_p), Δt_max).
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from ..segregation.closures import P_DT_TARGET, P_MODEL
 from ..segregation.grid import concentration_step
 from .params import (
     G_CFL,
+    G_CFLOOR,
     G_DTMAX,
     G_DTMIN,
     G_FLIP,
@@ -29,6 +30,7 @@ from .params import (
     G_PERIODIC,
     G_RAMP,
     G_TRANSFER,
+    G_VISC,
     G_X0,
     G_Y0,
     S_DT,
@@ -256,10 +258,14 @@ def advance(
     while steps < max_steps and sc[S_TIME] < t_stop:
         t = sc[S_TIME]
         dt = gp[G_DTMAX]
-        if sc[S_SMAX] > 0.0:
-            dt = min(dt, cfl * h / sc[S_SMAX])
+        # the floor keeps Δt at the loaded material's wave speed while (part of) it is a
+        # stress-free gas, whose c is 0: otherwise Δt grows during a free flight and the
+        # re-contact, stiff at once, is integrated with a step far above its stability limit
+        smax = max(sc[S_SMAX], gp[G_CFLOOR])
+        if smax > 0.0:
+            dt = min(dt, cfl * h / smax)
         if sc[S_NUMAX] > 0.0:
-            dt = min(dt, cfl * h * h / (2.0 * sc[S_NUMAX]))
+            dt = min(dt, gp[G_VISC] * h * h / (2.0 * sc[S_NUMAX]))
         if dt < gp[G_DTMIN]:
             return ST_DT_COLLAPSE, -1, steps
         if t + dt * 1.000001 >= t_stop:

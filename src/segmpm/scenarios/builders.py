@@ -23,6 +23,7 @@ from ..mpm.params import (
     G_BASE_MU,
     G_BASE_Y,
     G_CFL,
+    G_CFLOOR,
     G_DTMAX,
     G_DTMIN,
     G_FLIP,
@@ -38,6 +39,7 @@ from ..mpm.params import (
     G_RAMP,
     G_SIDEWALL,
     G_TRANSFER,
+    G_VISC,
     G_WALL_MU,
     G_X0,
     G_XHI,
@@ -110,6 +112,7 @@ def grid_record(
         gp[G_SIDEWALL] = 2.0 * b.sidewall_friction * b.wall_normal_stress_ratio / cfg.geometry.width
     gp[G_RAMP] = b.ramp_time
     gp[G_CFL] = cfg.time.cfl
+    gp[G_VISC] = cfg.time.viscous_number
     gp[G_DTMAX] = cfg.time.dt_max
     gp[G_DTMIN] = cfg.time.dt_min
     gp[G_TRANSFER] = {"apic": TRANSFER_APIC, "flip": TRANSFER_FLIP, "aflip": TRANSFER_AFLIP}[
@@ -144,7 +147,23 @@ def _points_state(cfg, x, area, gp, mp, p_yy, velocity=None) -> State:
     mass = rho_ref * vol0
     v = np.zeros((2, n)) if velocity is None else velocity
     phi = np.full(n, cfg.mixture.phi_small_initial)
+    gp[G_CFLOOR] = wave_speed_floor(cfg, mp, float(np.max(p_yy)) if n else 0.0)
     return State.from_points(x, v, mass, vol0, J, eps, phi, gp, mp)
+
+
+def wave_speed_floor(cfg: Config, mp: np.ndarray, p_ref: float) -> float:
+    """Elastic wave speed of the material loaded to ``p_ref`` (the largest initial load), m/s.
+
+    The time step never uses a smaller wave speed (``G_CFLOOR``): a gas (stress-free) region has
+    c = 0, and re-contact makes it stiff within one step. Fei model: the safe bound
+    √((3.75 A + 2 C) √I₁/ρ) at the oedometric I₁ of p_ref (physics.md §1.7); linear elastic: the
+    P-wave speed.
+    """
+    rho = cfg.material.solid_fraction * cfg.material.grain_density
+    if mp[0] == KIND_FEI2016:
+        I1 = float(oedometric_strain(np.array([p_ref]), mp[M_A], mp[M_C])[0])
+        return math.sqrt((3.75 * mp[M_A] + 2.0 * mp[M_C]) * math.sqrt(I1) / rho)
+    return math.sqrt((mp[M_LAMBDA] + 2.0 * mp[M_MU]) / rho)
 
 
 def _ny(top: float, h: float) -> int:
