@@ -52,6 +52,7 @@ from .transfer import (
     fold_images,
     gather,
     grid_update,
+    image_pairs,
     mirror_images,
     momentum_to_velocity,
     p2g,
@@ -254,6 +255,7 @@ def advance(
     cfl = gp[G_CFL]
     flip = gp[G_TRANSFER] == TRANSFER_FLIP
     nstrips = strip_start.shape[0] - 1
+    images = image_pairs(gp, grid.shape[0], grid.shape[1])
     steps = 0
     while steps < max_steps and sc[S_TIME] < t_stop:
         t = sc[S_TIME]
@@ -279,10 +281,10 @@ def advance(
         counting_sort(cursor, strip_start, order)
         pres = diag[0]
         p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, True)
-        fold_images(gp, grid, gp[G_GX] * ramp, gp[G_GY])
+        fold_images(grid, images, gp[G_GX] * ramp, gp[G_GY])
         grid_update(gp, grid, gv, gv_old, dt, ramp, True)
-        mirror_images(gp, gv)
-        mirror_images(gp, gv_old)
+        mirror_images(gv, images)
+        mirror_images(gv_old, images)
         if flip:
             x_old[:, :] = x
         status, idx, smax, numax = update_points(
@@ -308,9 +310,9 @@ def advance(
         if flip:
             # MUSL: remap the updated point momenta (old positions), then the strain rate
             p2g(x_old, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, False)
-            fold_images(gp, grid, 0.0, 0.0)
+            fold_images(grid, images, 0.0, 0.0)
             momentum_to_velocity(gp, grid, gv)
-            mirror_images(gp, gv)
+            mirror_images(gv, images)
             update_stress_musl(x, v, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, dt, x_old)
 
         sc[S_TIME] = t + dt

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit, prange
 
 from .boundary import apply_bc, sidewall_friction
@@ -243,57 +244,64 @@ def _fold(grid, ig, jg, im, jm, gx, gy):
 
 
 @njit(cache=True, error_model="numpy")
-def fold_images(gp, grid, gx, gy):
+def image_pairs(gp, nx, ny):
+    """The image nodes of the no-slip walls, in the order they are folded: rows
+    (i, j) of a node behind a wall, (i_m, j_m) of its mirror node, and 1 if the mirror lies in the
+    grid (else the wall node stands in as mirror for the velocity and nothing is folded).
+    The base comes first, then the walls x = x_lo and x = x_hi, so a corner node behind two walls
+    is reflected twice. Computed once per call of the time loop."""
+    jb, il, ih = image_planes(gp, nx, ny)
+    count = 0
+    if jb > 0:
+        count += nx * jb
+    if il > 0:
+        count += ny * il
+    if ih > 0:
+        count += ny * (nx - 1 - ih)
+    pairs = np.empty((count, 5), dtype=np.int64)
+    r = 0
+    if jb > 0:
+        for i in range(nx):
+            for k in range(1, jb + 1):
+                inside = jb + k < ny
+                pairs[r] = (i, jb - k, i, jb + k if inside else jb, 1 if inside else 0)
+                r += 1
+    if il > 0:
+        for j in range(ny):
+            for k in range(1, il + 1):
+                inside = il + k < nx
+                pairs[r] = (il - k, j, il + k if inside else il, j, 1 if inside else 0)
+                r += 1
+    if ih > 0:
+        for j in range(ny):
+            for k in range(1, nx - ih):
+                inside = ih - k >= 0
+                pairs[r] = (ih + k, j, ih - k if inside else ih, j, 1 if inside else 0)
+                r += 1
+    return pairs
+
+
+@njit(cache=True, error_model="numpy")
+def fold_images(grid, pairs, gx, gy):
     """Image nodes of no-slip walls (docs/model.md, "No-slip walls"): the P2G sums of a node
     behind the wall fold onto its mirror node, with the velocity of the node behind the wall
     slaved to minus that of its mirror (``mirror_images``), i.e. the Galerkin system on the odd
     extension of the velocity across the wall: mass +, momentum −, force − (gravity included).
     Without it the B-spline basis is one-sided at the wall and the wall kinematics are first
-    order in h. ``gx, gy``: the gravity applied to the nodes afterwards, per unit mass."""
-    nx = grid.shape[0]
-    ny = grid.shape[1]
-    jb, il, ih = image_planes(gp, nx, ny)
-    if jb > 0:
-        for i in range(nx):
-            for k in range(1, jb + 1):
-                if jb + k < ny:
-                    _fold(grid, i, jb - k, i, jb + k, gx, gy)
-    if il > 0:
-        for j in range(ny):
-            for k in range(1, il + 1):
-                if il + k < nx:
-                    _fold(grid, il - k, j, il + k, j, gx, gy)
-    if ih > 0:
-        for j in range(ny):
-            for k in range(1, nx - ih):
-                if ih - k >= 0:
-                    _fold(grid, ih + k, j, ih - k, j, gx, gy)
+    order in h. ``pairs`` from ``image_pairs``; ``gx, gy``: the gravity applied to the nodes
+    afterwards, per unit mass."""
+    for r in range(pairs.shape[0]):
+        if pairs[r, 4] != 0:
+            _fold(grid, pairs[r, 0], pairs[r, 1], pairs[r, 2], pairs[r, 3], gx, gy)
 
 
 @njit(cache=True, error_model="numpy")
-def mirror_images(gp, gv):
+def mirror_images(gv, pairs):
     """Nodal velocities behind no-slip walls: minus those of their mirror nodes (``fold_images``)."""
-    nx = gv.shape[0]
-    ny = gv.shape[1]
-    jb, il, ih = image_planes(gp, nx, ny)
-    if jb > 0:
-        for i in range(nx):
-            for k in range(1, jb + 1):
-                jm = jb + k if jb + k < ny else jb
-                gv[i, jb - k, 0] = -gv[i, jm, 0]
-                gv[i, jb - k, 1] = -gv[i, jm, 1]
-    if il > 0:
-        for j in range(ny):
-            for k in range(1, il + 1):
-                im = il + k if il + k < nx else il
-                gv[il - k, j, 0] = -gv[im, j, 0]
-                gv[il - k, j, 1] = -gv[im, j, 1]
-    if ih > 0:
-        for j in range(ny):
-            for k in range(1, nx - ih):
-                im = ih - k if ih - k >= 0 else ih
-                gv[ih + k, j, 0] = -gv[im, j, 0]
-                gv[ih + k, j, 1] = -gv[im, j, 1]
+    for r in range(pairs.shape[0]):
+        ig, jg, im, jm = pairs[r, 0], pairs[r, 1], pairs[r, 2], pairs[r, 3]
+        gv[ig, jg, 0] = -gv[im, jm, 0]
+        gv[ig, jg, 1] = -gv[im, jm, 1]
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
