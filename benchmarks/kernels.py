@@ -59,9 +59,7 @@ def main() -> int:
             bounds,
             True,
         ),  # fmt: skip
-        "grid update": lambda: transfer.grid_update(
-            st.gp, w["grid"], w["gv"], w["gv_old"], dt, 1.0, True
-        ),
+        "grid update": lambda: transfer.grid_update(st.gp, w["grid"], w["gv"], dt, 1.0, True),
         "(restore)": restore,
         "G2P + stress": lambda: (
             restore(),
@@ -79,7 +77,6 @@ def main() -> int:
                 st.gp,
                 st.mp,
                 w["gv"],
-                w["gv_old"],
                 dt,
                 w["flags"],
                 w["cursor"],

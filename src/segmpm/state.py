@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from .mpm.params import G_NX, G_NY, S_NSLOTS
-from .mpm.transfer import N_FIELDS, STRIP
+from .mpm.transfer import N_FIELDS, STRIP, V_LANES
 
 #: arrays that define the physical state (saved in checkpoints)
 STATE_ARRAYS = ("x", "v", "C", "mass", "vol0", "J", "eps", "sig", "phi", "diag", "s_int", "g_int")
@@ -108,8 +108,7 @@ class State:
         nstrips = ny // STRIP + 2
         self.work = {
             "grid": np.zeros((nx, ny, N_FIELDS)),
-            "gv": np.zeros((nx, ny, 2)),
-            "gv_old": np.zeros((nx, ny, 2)),
+            "gv": np.zeros((nx, ny, V_LANES)),
             "strip_start": np.zeros(nstrips + 1, dtype=np.int64),
             "cursor": np.zeros(n, dtype=np.int64),
             "order": np.zeros(n, dtype=np.int64),

@@ -13,7 +13,7 @@ from .fei2016 import fei_update, fei_update_np
 from .params import KIND_FEI2016, KIND_LINEAR_ELASTIC, M_KIND, pack_material
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def material_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     """Dispatch on the model chosen at set-up (slot ``M_KIND``)."""
     if prm[M_KIND] == KIND_FEI2016:

@@ -14,7 +14,7 @@ from .fei2016 import deviatoric_rate, jaumann_predictor, jaumann_predictor_np
 from .params import M_F, M_LAMBDA, M_MU, M_RHO_S
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def elastic_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     """Stress update of one point; same contract as :func:`segmpm.materials.fei2016.fei_update`."""
     lam = prm[M_LAMBDA]

@@ -24,12 +24,15 @@ from .params import (
     DRIVER_B,
     M_A,
     M_C,
+    M_CAPR,
+    M_CW,
     M_DL,
     M_DRIVER,
     M_DS,
     M_F,
     M_GFLOOR,
     M_H,
+    M_IRHO0,
     M_KAPPA,
     M_KAPPA_T,
     M_MU_A,
@@ -58,14 +61,19 @@ def deviatoric_rate(l00, l01, l10, l11):
     """d′ (xx, yy, zz, xy) of plane strain (d_zz = 0) and the shear rate γ̇ = √(2 d′:d′)."""
     dxy = 0.5 * (l01 + l10)
     trd = l00 + l11
-    dpxx = l00 - trd / 3.0
-    dpyy = l11 - trd / 3.0
-    dpzz = -trd / 3.0
+    t3 = trd * THIRD
+    dpxx = l00 - t3
+    dpyy = l11 - t3
+    dpzz = -t3
     gdot = math.sqrt(2.0 * (dpxx * dpxx + dpyy * dpyy + dpzz * dpzz + 2.0 * dxy * dxy))
     return dpxx, dpyy, dpzz, dxy, trd, gdot
 
 
-@njit(cache=True, error_model="numpy")
+#: 1/3 (a multiplication instead of a division by 3 in the compiled kernels)
+THIRD = 1.0 / 3.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     """Stress update of one material point.
 
@@ -73,6 +81,9 @@ def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     small-grain concentration φ_s. Returns the new elastic strain (4), the Cauchy stress (4), and
     (p_e, γ̇, I, S, c, ν): elastic pressure, shear rate, inertial number, segregation driver,
     elastic wave speed, kinematic viscosity (for the time step).
+
+    Written with three divisions (1/J, 1/√I₁, 1/√(ρ_s p_e)), one logarithm and three square
+    roots per point; the NumPy reference :func:`fei_update_np` states the same formulas plainly.
     """
     A = prm[M_A]
     C = prm[M_C]
@@ -84,15 +95,15 @@ def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     I1 = -math.log(J)
     if I1 <= 0.0:
         # gas: no contacts, no stress; the volumetric strain keeps tracking the density
-        v = -I1 / 3.0
+        v = -I1 * THIRD
         return v, v, 0.0, v, 0.0, 0.0, 0.0, 0.0, 0.0, gdot, 0.0, 0.0, 0.0, 0.0
-    tr = exx + eyy + ezz
-    e0xx = exx - tr / 3.0
-    e0yy = eyy - tr / 3.0
-    e0zz = ezz - tr / 3.0
+    t3 = (exx + eyy + ezz) * THIRD
+    e0xx = exx - t3
+    e0yy = eyy - t3
+    e0zz = ezz - t3
     e0xy = exy
     I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz + 2.0 * e0xy * e0xy)
-    cap = prm[M_RC] * I1 / prm[M_QPHI]
+    cap = prm[M_CAPR] * I1
     if I2 > cap * cap:
         s = cap / math.sqrt(I2)
         e0xx *= s
@@ -100,22 +111,25 @@ def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
         e0zz *= s
         e0xy *= s
         I2 = cap * cap
-    third = I1 / 3.0
+    third = I1 * THIRD
 
     sq = math.sqrt(I1)
-    pe = 2.5 * A * I1 * sq + 0.5 * C * I2 / sq
+    pe = 2.5 * A * I1 * sq + 0.5 * C * I2 * (1.0 / sq)
     G2 = C * sq  # 2G
     # dissipative stress, division-free form
     a = prm[M_MU_A] * prm[M_SDF]
     b = prm[M_MU_B]
     dbar = phi * prm[M_DS] + (1.0 - phi) * prm[M_DL]
+    spe = math.sqrt(rho_s * pe)
     if b == 1.0:
-        eta = a * dbar * math.sqrt(rho_s * pe)
+        eta = a * dbar * spe
     else:
         g = max(gdot, prm[M_GFLOOR])
         eta = a * dbar**b * rho_s ** (0.5 * b) * pe ** (1.0 - 0.5 * b) * g ** (b - 1.0)
-    inertial = gdot * dbar / math.sqrt(pe / rho_s) if pe > 0.0 else 0.0
-    c = math.sqrt((3.75 * A + 2.0 * C) * sq / rho)
+    # I = γ̇ d̄ / √(p_e/ρ_s) = γ̇ d̄ ρ_s / √(ρ_s p_e)
+    inertial = gdot * dbar * rho_s / spe if pe > 0.0 else 0.0
+    # c² = (3.75 A + 2 C) √I₁ / ρ
+    c = math.sqrt(prm[M_CW] * sq * J * prm[M_IRHO0])
     zeta = prm[M_ZETA] * rho * c * prm[M_H]
     vol = zeta * trd
     sxx = -pe + G2 * e0xx + 2.0 * eta * dpxx + vol
@@ -131,7 +145,7 @@ def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     else:
         S = -2.0 * eta * dpyy
     S *= prm[M_KAPPA]
-    nu = (eta + zeta) / rho
+    nu = (eta + zeta) * J * prm[M_IRHO0]
     return (
         e0xx - third,
         e0yy - third,

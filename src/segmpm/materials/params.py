@@ -38,8 +38,12 @@ DRIVER_C = 2  # S = −σ^d_yy (literal seed; ≈ 0 in steady shear, diagnostic)
     M_KAPPA_T,  # κ_T of driver B
     M_LAMBDA,  # linear elastic λ
     M_MU,  # linear elastic μ (shear modulus)
+    # derived constants, so that the compiled update multiplies instead of dividing
+    M_CAPR,  # r_c / q_φ
+    M_IRHO0,  # 1 / (f ρ_s)
+    M_CW,  # 3.75 A + 2 C: ρ c² = (3.75 A + 2 C) √I₁
     M_NSLOTS,
-) = range(21)
+) = range(24)
 
 
 def pack_material(cfg: Config) -> np.ndarray:
@@ -65,6 +69,9 @@ def pack_material(cfg: Config) -> np.ndarray:
     prm[M_DRIVER] = {"A": DRIVER_A, "B": DRIVER_B, "C": DRIVER_C}[cfg.segregation.driver]
     prm[M_KAPPA] = cfg.segregation.kappa
     prm[M_KAPPA_T] = cfg.segregation.kappa_T
+    prm[M_CAPR] = m.cap_ratio / m.q_phi
+    prm[M_IRHO0] = 1.0 / (m.solid_fraction * m.grain_density)
+    prm[M_CW] = 3.75 * A + 2.0 * prm[M_C]
     E, nu = m.youngs_modulus, m.poisson_ratio
     prm[M_LAMBDA] = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
     prm[M_MU] = E / (2.0 * (1.0 + nu))

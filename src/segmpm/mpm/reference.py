@@ -127,12 +127,12 @@ def _image_planes_np(gp: np.ndarray, nx: int, ny: int) -> tuple[int, int, int]:
     return jb, il, ih
 
 
-#: parity of the P2G fields under the odd extension across a no-slip wall (m, mv, f, mp, mρ)
-_PARITY = np.array([1.0, -1.0, -1.0, -1.0, -1.0, 1.0, 1.0])
+#: parity of the P2G fields under the odd extension across a no-slip wall (m, mv, f, V p)
+_PARITY = np.array([1.0, -1.0, -1.0, -1.0, -1.0, 1.0])
 
 
 def _fold_np(f: np.ndarray, jb: int, il: int, ih: int, gx: float, gy: float) -> None:
-    """Fold the fields (7, nx, ny) of the nodes behind each wall onto their mirrors."""
+    """Fold the fields (6, nx, ny) of the nodes behind each wall onto their mirrors."""
     nx, ny = f.shape[1], f.shape[2]
 
     def fold(src, dst):
@@ -183,14 +183,12 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
     IX, IY, W, GX, GY, DX, DY = _stencil(gp, x)
     m = s["mass"][:, None, None]
     vol = (s["vol0"] * s["J"])[:, None, None]
-    rho = s["mass"][:, None, None] / vol
     gm = np.zeros((nx, ny))
     gmx = np.zeros((nx, ny))
     gmy = np.zeros((nx, ny))
     gfx = np.zeros((nx, ny))
     gfy = np.zeros((nx, ny))
-    gmp = np.zeros((nx, ny))
-    gmr = np.zeros((nx, ny))
+    gvp = np.zeros((nx, ny))
     mw = m * W
     np.add.at(gm, (IX, IY), mw)
     c = C[:, :, None, None]
@@ -199,14 +197,13 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
     sxx, syy, sxy = (sig[k][:, None, None] for k in range(3))
     np.add.at(gfx, (IX, IY), -vol * (sxx * GX + sxy * GY))
     np.add.at(gfy, (IX, IY), -vol * (sxy * GX + syy * GY))
-    np.add.at(gmp, (IX, IY), mw * s["diag"][0][:, None, None])
-    np.add.at(gmr, (IX, IY), mw * rho)
+    np.add.at(gvp, (IX, IY), W * vol * s["diag"][0][:, None, None])
 
     jb, il, ih = _image_planes_np(gp, nx, ny)
     if max(jb, il, ih) > 0:
-        fields = np.stack([gm, gmx, gmy, gfx, gfy, gmp, gmr])
+        fields = np.stack([gm, gmx, gmy, gfx, gfy, gvp])
         _fold_np(fields, jb, il, ih, gp[G_GX] * ramp, gp[G_GY])
-        gm, gmx, gmy, gfx, gfy, gmp, gmr = fields
+        gm, gmx, gmy, gfx, gfy, gvp = fields
     has = gm > 0
     safe = np.where(has, gm, 1.0)
     vox, voy = gmx / safe, gmy / safe
@@ -214,9 +211,9 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
     vy = voy + dt * (gfy / safe + gp[G_GY])
     sw = gp[G_SIDEWALL] * ramp
     if sw > 0:
-        pn = gmp / safe
-        act = has & (pn > 0)
-        dvmax = np.where(act, dt * sw * pn / np.where(act, gmr / safe, 1.0), 0.0)
+        # the Coulomb body force 2 μ_w K_w p / W per unit volume, integrated: Σ w V p / m
+        act = has & (gvp > 0)
+        dvmax = np.where(act, dt * sw * gvp / safe, 0.0)
         speed = np.hypot(vx, vy)
         f = np.where(speed <= dvmax, 0.0, 1.0 - dvmax / np.where(speed > 0, speed, 1.0))
         vx = np.where(act, vx * f, vx)

@@ -62,28 +62,27 @@ from .transfer import (
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _inside(gp, xp, yp):
-    """True if the point's 3×3 stencil lies inside the grid."""
-    h = gp[G_H]
-    xi = (yp - gp[G_Y0]) / h
+def _inside(gp, xp, yp, ih):
+    """True if the point's 3×3 stencil lies inside the grid (``ih`` = 1/h)."""
+    xi = (yp - gp[G_Y0]) * ih
     if not (xi >= 0.5 and xi < gp[G_NY] - 1.5):
         return False
     if gp[G_PERIODIC] == 0.0:
-        xi = (xp - gp[G_X0]) / h
+        xi = (xp - gp[G_X0]) * ih
         if not (xi >= 0.5 and xi < gp[G_NX] - 1.5):
             return False
     return True
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, gv, gv_old, mp, dt, flags,
-               h, x0, y0, nx, periodic, lx, mode, alpha, gp):  # fmt: skip
+def _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, g, mp, dt, flags,
+               ih, x0, y0, nx, ny, periodic, lx, mode, alpha, gp):  # fmt: skip
     """G2P, advection, J and the material update of one point (see ``update_points``)."""
     px = x[0, p]
     py = x[1, p]
     flip = mode == TRANSFER_FLIP
     vx, vy, c00, c01, c10, c11, l00, l01, l10, l11, ox, oy = gather(
-        px, py, gv, gv_old, h, x0, y0, nx, periodic, flip or mode == TRANSFER_AFLIP
+        px, py, g, ih, x0, y0, nx, ny, periodic
     )
     if flip or mode == TRANSFER_AFLIP:
         v[0, p] = alpha * (v[0, p] + vx - ox) + (1.0 - alpha) * vx
@@ -108,35 +107,39 @@ def _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, gv, gv_old, mp,
     if not flip:
         # MUSL (flip) takes the strain rate from the remapped momenta instead (see advance)
         _stress(p, l00, l01, l10, l11, dt, v, J, eps, sig, phi, diag, s_int, g_int, mp)
-    flags[p] = ST_OK if _inside(gp, xn, yn) else ST_LEFT_GRID
+    flags[p] = ST_OK if _inside(gp, xn, yn, ih) else ST_LEFT_GRID
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_old, dt, flags,
+def update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, dt, flags,
                   cursor, nstrips):  # fmt: skip
     """G2P (APIC, AFLIP, or the FLIP/PIC blend of MUSL), advection, J, and the material update.
 
-    ``diag`` (6, N): pressure, shear rate, inertial number, driver S, c + |v|, ν.
-    ``flags[p]``: 0 ok, ST_NONFINITE or ST_LEFT_GRID. ``cursor[p]`` receives the P2G strip of the
-    new position (for the next step's sort). Returns the step check of ``_check`` fused into the
-    same parallel loop: (status, first failing point, max c + |v|, max ν).
+    ``gv`` (N_x, N_y, 4): the nodal velocities of ``grid_update``. ``diag`` (6, N): pressure,
+    shear rate, inertial number, driver S, c + |v|, ν. ``flags[p]``: 0 ok, ST_NONFINITE or
+    ST_LEFT_GRID. ``cursor[p]`` receives the P2G strip of the new position (for the next step's
+    sort). Returns the step check of ``_check`` fused into the same parallel loop: (status,
+    first failing point, max c + |v|, max ν).
     """
     n = x.shape[1]
     mode = int(gp[G_TRANSFER])
     alpha = gp[G_FLIP]
     lx = gp[G_LX]
     h = gp[G_H]
+    ih = 1.0 / h
     x0 = gp[G_X0]
     y0 = gp[G_Y0]
-    nx = int(gp[G_NX])
+    nx = gv.shape[0]
+    ny = gv.shape[1]
+    g = gv.reshape(gv.size)
     periodic = gp[G_PERIODIC] != 0.0
     smax = 0.0
     numax = 0.0
     bad = n
     for p in prange(n):
-        _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, gv, gv_old, mp, dt, flags,
-                   h, x0, y0, nx, periodic, lx, mode, alpha, gp)  # fmt: skip
-        cursor[p] = strip_of(x[1, p], y0, h, nstrips)
+        _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, g, mp, dt, flags,
+                   ih, x0, y0, nx, ny, periodic, lx, mode, alpha, gp)  # fmt: skip
+        cursor[p] = strip_of(x[1, p], y0, ih, nstrips)
         if not _point_ok(p, x, J, sig, diag, flags):
             bad = min(bad, p)
         smax = max(smax, diag[4, p])
@@ -148,13 +151,15 @@ def update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, gv_
 def update_stress_musl(x, v, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, dt, x_old):
     """MUSL stress update from the remapped nodal velocities, evaluated at the old positions."""
     n = x.shape[1]
-    h = gp[G_H]
+    ih = 1.0 / gp[G_H]
     x0 = gp[G_X0]
     y0 = gp[G_Y0]
-    nx = int(gp[G_NX])
+    nx = gv.shape[0]
+    ny = gv.shape[1]
+    g = gv.reshape(gv.size)
     periodic = gp[G_PERIODIC] != 0.0
     for p in prange(n):
-        r = gather(x_old[0, p], x_old[1, p], gv, gv, h, x0, y0, nx, periodic, False)
+        r = gather(x_old[0, p], x_old[1, p], g, ih, x0, y0, nx, ny, periodic)
         _stress(p, r[6], r[7], r[8], r[9], dt, v, J, eps, sig, phi, diag, s_int, g_int, mp)
 
 
@@ -240,7 +245,7 @@ def _check(x, v, J, sig, diag, flags):
 @njit(cache=True, error_model="numpy")
 def advance(
     x, v, C, mass, vol0, J, eps, sig, phi, diag, s_int, g_int,
-    gp, mp, sc, grid, gv, gv_old, strip_start, cursor, order, bounds, flags, x_old,
+    gp, mp, sc, grid, gv, strip_start, cursor, order, bounds, flags, x_old,
     seg_prm, cg, seg_work, t_stop, max_steps,
 ):  # fmt: skip
     """Advance the state to ``t_stop`` (exactly) or by ``max_steps`` steps, whichever comes first.
@@ -282,9 +287,8 @@ def advance(
         pres = diag[0]
         p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, True)
         fold_images(grid, images, gp[G_GX] * ramp, gp[G_GY])
-        grid_update(gp, grid, gv, gv_old, dt, ramp, True)
+        grid_update(gp, grid, gv, dt, ramp, True)
         mirror_images(gv, images)
-        mirror_images(gv_old, images)
         if flip:
             x_old[:, :] = x
         status, idx, smax, numax = update_points(
@@ -301,7 +305,6 @@ def advance(
             gp,
             mp,
             gv,
-            gv_old,
             dt,
             flags,
             cursor,

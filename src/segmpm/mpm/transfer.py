@@ -27,7 +27,6 @@ from .params import (
     G_GY,
     G_H,
     G_IMAGES,
-    G_NX,
     G_PERIODIC,
     G_SIDEWALL,
     G_X0,
@@ -37,7 +36,7 @@ from .params import (
     G_XLO_KIND,
     G_Y0,
 )
-from .shape import bspline2
+from .shape import bspline2_frac
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -53,24 +52,32 @@ def _wrap(i, n):
 #: cell rows per P2G strip (must be ≥ 3 for strips of one colour to share no node)
 STRIP = 3
 
-#: nodal accumulator fields of P2G
-N_MASS, N_MX, N_MY, N_FX, N_FY, N_MP, N_MRHO, N_FIELDS = range(8)
+#: nodal accumulator fields of P2G: mass, momentum, internal force, and Σ w V p (the pressure
+#: integral of the sidewall friction force)
+N_MASS, N_MX, N_MY, N_FX, N_FY, N_VP, N_FIELDS = range(7)
+
+#: lanes of the nodal velocity array ``gv`` (N_x, N_y, 4): the updated velocity v* and the old
+#: velocity m v / m of the FLIP increment, each with the boundary conditions applied
+V_X, V_Y, V_OX, V_OY, V_LANES = range(5)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def strip_of(y, y0, h, nstrips):
-    """P2G strip (``STRIP`` cell rows) of a point at height y, clamped to [0, nstrips)."""
-    s = int(math.floor((y - y0) / h)) // STRIP
+def strip_of(y, y0, ih, nstrips):
+    """P2G strip (``STRIP`` cell rows) of a point at height y, clamped to [0, nstrips).
+
+    ``ih`` = 1/h: the grid coordinate (y − y0) ih is computed exactly as in the P2G stencil, so
+    that a point's strip and the node rows it scatters to always agree."""
+    s = int(math.floor((y - y0) * ih)) // STRIP
     return min(max(s, 0), nstrips - 1)
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
 def strip_index(py, gp, cursor, nstrips):
     """``cursor[p]``: the strip of every point (the time loop gets it from G2P afterwards)."""
-    h = gp[G_H]
+    ih = 1.0 / gp[G_H]
     y0 = gp[G_Y0]
     for p in prange(py.shape[0]):
-        cursor[p] = strip_of(py[p], y0, h, nstrips)
+        cursor[p] = strip_of(py[p], y0, ih, nstrips)
 
 
 @njit(cache=True, error_model="numpy")
@@ -100,51 +107,78 @@ def sort_into_strips(py, gp, strip_start, cursor, order):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, grid, h, x0, y0, nx, periodic, force):
-    """P2G of one point onto its 3 × 3 nodes: mass, APIC momentum, internal force, m p and m ρ."""
+def _scatter_node(g, k, w, gx, gy, m, mvx, mvy, sxx, sxy, syy, vp, force):
+    """Add one point's share to the node whose fields start at ``g[k]`` (flat grid)."""
+    mw = m * w
+    g[k + N_MASS] += mw
+    g[k + N_MX] += mw * mvx
+    g[k + N_MY] += mw * mvy
+    if force:
+        g[k + N_FX] += sxx * gx + sxy * gy
+        g[k + N_FY] += sxy * gx + syy * gy
+    g[k + N_VP] += w * vp
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _scatter_column(g, k, wa, da, ddx, wy0, wy1, wy2, dy0, dy1, dy2, ey0, ey1, ey2, m, vx, vy,
+                    c00, c01, c10, c11, sxx, sxy, syy, vp, force):  # fmt: skip
+    """P2G onto the three nodes of one grid column (``k``: flat offset of its lowest node;
+    ``ey_b`` = y_b − y_p)."""
+    mvx = vx + c00 * ddx
+    mvy = vy + c10 * ddx
+    _scatter_node(g, k, wa * wy0, da * wy0, wa * dy0, m, mvx + c01 * ey0, mvy + c11 * ey0,
+                  sxx, sxy, syy, vp, force)  # fmt: skip
+    _scatter_node(g, k + N_FIELDS, wa * wy1, da * wy1, wa * dy1, m, mvx + c01 * ey1,
+                  mvy + c11 * ey1, sxx, sxy, syy, vp, force)  # fmt: skip
+    _scatter_node(g, k + 2 * N_FIELDS, wa * wy2, da * wy2, wa * dy2, m, mvx + c01 * ey2,
+                  mvy + c11 * ey2, sxx, sxy, syy, vp, force)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _columns(bx, nx, periodic):
+    """The three node columns of a stencil with base column ``bx`` (periodic: wrapped)."""
+    if not periodic:
+        return bx, bx + 1, bx + 2
+    return _wrap(bx, nx), _wrap(bx + 1, nx), _wrap(bx + 2, nx)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, g, ih, h, x0, y0, nx, ny, periodic,
+                   force):  # fmt: skip
+    """P2G of one point onto its 3 × 3 nodes: mass, APIC momentum, internal force −V σ·∇w and
+    the sidewall pressure integral w V p (``g``: the flat grid, N_FIELDS per node)."""
     xp = x[0, p]
     yp = x[1, p]
-    bx, wx0, wx1, wx2, dx0, dx1, dx2 = bspline2((xp - x0) / h)
-    by, wy0, wy1, wy2, dy0, dy1, dy2 = bspline2((yp - y0) / h)
+    bx, wx0, wx1, wx2, dx0, dx1, dx2, fx = bspline2_frac((xp - x0) * ih)
+    by, wy0, wy1, wy2, dy0, dy1, dy2, fy = bspline2_frac((yp - y0) * ih)
+    # node offsets y_b − y_p in metres
+    ey0 = -fy * h
+    ey1 = (1.0 - fy) * h
+    ey2 = (2.0 - fy) * h
     m = mass[p]
     vol = vol0[p] * J[p]
-    rho = m / vol
+    # −V σ·∇w with ∇w per grid unit: the 1/h is folded into the stress
+    fv = -vol * ih
+    sxx = fv * sig[0, p]
+    syy = fv * sig[1, p]
+    sxy = fv * sig[2, p]
+    vp = vol * pres[p]
     vx = v[0, p]
     vy = v[1, p]
     c00 = C[0, p]
     c01 = C[1, p]
     c10 = C[2, p]
     c11 = C[3, p]
-    # −V σ·∇w with ∇w per grid unit: the 1/h is folded into the stress
-    fv = -vol / h
-    sxx = fv * sig[0, p]
-    syy = fv * sig[1, p]
-    sxy = fv * sig[2, p]
-    pp = pres[p]
-    for a in range(3):
-        wa = wx0 if a == 0 else (wx1 if a == 1 else wx2)
-        da = dx0 if a == 0 else (dx1 if a == 1 else dx2)
-        ixu = bx + a
-        ix = _wrap(ixu, nx) if periodic else ixu
-        ddx = ixu * h + x0 - xp
-        mvx = vx + c00 * ddx
-        mvy = vy + c10 * ddx
-        for b in range(3):
-            wb = wy0 if b == 0 else (wy1 if b == 1 else wy2)
-            iy = by + b
-            ddy = iy * h + y0 - yp
-            mw = m * (wa * wb)
-            grid[ix, iy, N_MASS] += mw
-            grid[ix, iy, N_MX] += mw * (mvx + c01 * ddy)
-            grid[ix, iy, N_MY] += mw * (mvy + c11 * ddy)
-            grid[ix, iy, N_MP] += mw * pp
-            grid[ix, iy, N_MRHO] += mw * rho
-            if force:
-                db = dy0 if b == 0 else (dy1 if b == 1 else dy2)
-                gx = da * wb
-                gy = wa * db
-                grid[ix, iy, N_FX] += sxx * gx + sxy * gy
-                grid[ix, iy, N_FY] += sxy * gx + syy * gy
+    i0, i1, i2 = _columns(bx, nx, periodic)
+    _scatter_column(g, (i0 * ny + by) * N_FIELDS, wx0, dx0, -fx * h, wy0, wy1, wy2, dy0, dy1,
+                    dy2, ey0, ey1, ey2, m, vx, vy, c00, c01, c10, c11, sxx, sxy, syy, vp,
+                    force)  # fmt: skip
+    _scatter_column(g, (i1 * ny + by) * N_FIELDS, wx1, dx1, (1.0 - fx) * h, wy0, wy1, wy2, dy0,
+                    dy1, dy2, ey0, ey1, ey2, m, vx, vy, c00, c01, c10, c11, sxx, sxy, syy, vp,
+                    force)  # fmt: skip
+    _scatter_column(g, (i2 * ny + by) * N_FIELDS, wx2, dx2, (2.0 - fx) * h, wy0, wy1, wy2, dy0,
+                    dy1, dy2, ey0, ey1, ey2, m, vx, vy, c00, c01, c10, c11, sxx, sxy, syy, vp,
+                    force)  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy")
@@ -174,15 +208,19 @@ def _balance(strip_start, colour, nc, bounds):
 
 @njit(cache=True, error_model="numpy", parallel=True)
 def p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, with_force):
-    """Scatter mass, APIC momentum, internal force −Σ V σ·∇w, and the mass-weighted p and ρ.
+    """Scatter mass, APIC momentum, internal force −Σ V σ·∇w, and Σ w V p (sidewall friction).
 
-    ``bounds`` (threads + 1): work array; its length sets the number of balanced strip runs."""
-    grid[:] = 0.0
+    ``grid`` (N_x, N_y, N_FIELDS); ``pres`` the pressure p of each point; ``bounds``
+    (threads + 1): work array; its length sets the number of balanced strip runs."""
+    g = grid.reshape(grid.size)
+    g[:] = 0.0
     ns = strip_start.shape[0] - 1
     h = gp[G_H]
+    ih = 1.0 / h
     x0 = gp[G_X0]
     y0 = gp[G_Y0]
-    nx = int(gp[G_NX])
+    nx = grid.shape[0]
+    ny = grid.shape[1]
     periodic = gp[G_PERIODIC] != 0.0
     nt = bounds.shape[0] - 1
     for colour in range(2):
@@ -192,8 +230,8 @@ def p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds,
             for k in range(bounds[t], bounds[t + 1]):
                 s = colour + 2 * k
                 for i in range(strip_start[s], strip_start[s + 1]):
-                    _scatter_point(order[i], x, v, C, mass, vol0, J, sig, pres, grid,
-                                   h, x0, y0, nx, periodic, with_force)  # fmt: skip
+                    _scatter_point(order[i], x, v, C, mass, vol0, J, sig, pres, g, ih, h,
+                                   x0, y0, nx, ny, periodic, with_force)  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy")
@@ -237,8 +275,7 @@ def _fold(grid, ig, jg, im, jm, gx, gy):
     # the weight on the image node is odd too: (m − m_g) g in all, with m g added later
     grid[im, jm, N_FX] -= grid[ig, jg, N_FX] + 2.0 * m * gx
     grid[im, jm, N_FY] -= grid[ig, jg, N_FY] + 2.0 * m * gy
-    grid[im, jm, N_MP] += grid[ig, jg, N_MP]
-    grid[im, jm, N_MRHO] += grid[ig, jg, N_MRHO]
+    grid[im, jm, N_VP] += grid[ig, jg, N_VP]
     for f in range(N_FIELDS):
         grid[ig, jg, f] = 0.0
 
@@ -297,19 +334,21 @@ def fold_images(grid, pairs, gx, gy):
 
 @njit(cache=True, error_model="numpy")
 def mirror_images(gv, pairs):
-    """Nodal velocities behind no-slip walls: minus those of their mirror nodes (``fold_images``)."""
+    """Nodal velocities (every lane of ``gv``) behind no-slip walls: minus those of their mirror
+    nodes (``fold_images``)."""
     for r in range(pairs.shape[0]):
         ig, jg, im, jm = pairs[r, 0], pairs[r, 1], pairs[r, 2], pairs[r, 3]
-        gv[ig, jg, 0] = -gv[im, jm, 0]
-        gv[ig, jg, 1] = -gv[im, jm, 1]
+        for lane in range(gv.shape[2]):
+            gv[ig, jg, lane] = -gv[im, jm, lane]
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def grid_update(gp, grid, gv, gv_old, dt, ramp, sidewall_on):
+def grid_update(gp, grid, gv, dt, ramp, sidewall_on):
     """Nodal velocities: v* = (m v + Δt (f + m g))/m, sidewall friction, then boundaries.
 
     ``ramp`` ∈ [0, 1] scales the tangential gravity and the sidewall force (start-up ramp).
-    ``gv_old`` receives m v / m before the update, with the same boundary conditions (FLIP).
+    ``gv`` (N_x, N_y, 4) receives v* in lanes V_X, V_Y and the old velocity m v / m, with the
+    same boundary conditions (FLIP), in lanes V_OX, V_OY.
     """
     nx = grid.shape[0]
     ny = grid.shape[1]
@@ -324,35 +363,36 @@ def grid_update(gp, grid, gv, gv_old, dt, ramp, sidewall_on):
         for j in range(ny):
             m = grid[i, j, N_MASS]
             if m <= 0.0:
-                gv[i, j, 0] = 0.0
-                gv[i, j, 1] = 0.0
-                gv_old[i, j, 0] = 0.0
-                gv_old[i, j, 1] = 0.0
+                for lane in range(V_LANES):
+                    gv[i, j, lane] = 0.0
                 continue
-            vox = grid[i, j, N_MX] / m
-            voy = grid[i, j, N_MY] / m
-            vx = vox + dt * (grid[i, j, N_FX] / m + gx)
-            vy = voy + dt * (grid[i, j, N_FY] / m + gy)
+            im = 1.0 / m
+            vox = grid[i, j, N_MX] * im
+            voy = grid[i, j, N_MY] * im
+            vx = vox + dt * (grid[i, j, N_FX] * im + gx)
+            vy = voy + dt * (grid[i, j, N_FY] * im + gy)
             if sidewall_on and sw > 0.0:
-                pn = grid[i, j, N_MP] / m
-                if pn > 0.0:
-                    rn = grid[i, j, N_MRHO] / m
-                    vx, vy = sidewall_friction(vx, vy, dt * sw * pn / rn)
+                # Coulomb body force 2 μ_w K_w p / W per unit volume: its Galerkin integral
+                # Σ w V p over the nodal mass is the pressure over density at the node
+                vp = grid[i, j, N_VP]
+                if vp > 0.0:
+                    vx, vy = sidewall_friction(vx, vy, dt * sw * vp * im)
             yn = y0 + j * h
             vx, vy = apply_bc(gp, xn, yn, vx, vy)
             # the boundary also constrains the old velocity, so that the FLIP increment on a
             # constrained node is only the physical change: otherwise zeroing a node's projected
             # velocity every step would act as a drag ∝ 1/Δt on the points near the wall
             vox, voy = apply_bc(gp, xn, yn, vox, voy)
-            gv[i, j, 0] = vx
-            gv[i, j, 1] = vy
-            gv_old[i, j, 0] = vox
-            gv_old[i, j, 1] = voy
+            gv[i, j, V_X] = vx
+            gv[i, j, V_Y] = vy
+            gv[i, j, V_OX] = vox
+            gv[i, j, V_OY] = voy
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
 def momentum_to_velocity(gp, grid, gv):
-    """MUSL remap: nodal velocity from the re-scattered point momenta, with the boundaries."""
+    """MUSL remap: nodal velocity (lanes V_X, V_Y) from the re-scattered point momenta, with the
+    boundaries."""
     nx = grid.shape[0]
     ny = grid.shape[1]
     h = gp[G_H]
@@ -360,67 +400,81 @@ def momentum_to_velocity(gp, grid, gv):
         for j in range(ny):
             m = grid[i, j, N_MASS]
             if m <= 0.0:
-                gv[i, j, 0] = 0.0
-                gv[i, j, 1] = 0.0
+                gv[i, j, V_X] = 0.0
+                gv[i, j, V_Y] = 0.0
                 continue
             vx, vy = apply_bc(
                 gp, gp[G_X0] + i * h, gp[G_Y0] + j * h, grid[i, j, N_MX] / m, grid[i, j, N_MY] / m
             )
-            gv[i, j, 0] = vx
-            gv[i, j, 1] = vy
+            gv[i, j, V_X] = vx
+            gv[i, j, V_Y] = vy
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def gather(px, py, gv, gv_old, h, x0, y0, nx, periodic, old):
-    """G2P at (px, py) in one pass over the 3 × 3 nodes: Σ w v_i, the APIC matrix
-    C_p = (4/h²) Σ w v_i (x_i − x_p)ᵀ, L_p = Σ v_i ⊗ ∇w_i, and (if ``old``) Σ w v_i^old, the old
-    nodal velocity of the FLIP increment. Returns (vx, vy, C00, C01, C10, C11, L00, L01, L10, L11,
-    ox, oy)."""
-    bx, wx0, wx1, wx2, dx0, dx1, dx2 = bspline2((px - x0) / h)
-    by, wy0, wy1, wy2, dy0, dy1, dy2 = bspline2((py - y0) / h)
-    vx = 0.0
-    vy = 0.0
-    b00 = 0.0
-    b01 = 0.0
-    b10 = 0.0
-    b11 = 0.0
-    l00 = 0.0
-    l01 = 0.0
-    l10 = 0.0
-    l11 = 0.0
-    ox = 0.0
-    oy = 0.0
-    for a in range(3):
-        wa = wx0 if a == 0 else (wx1 if a == 1 else wx2)
-        da = dx0 if a == 0 else (dx1 if a == 1 else dx2)
-        ixu = bx + a
-        ix = _wrap(ixu, nx) if periodic else ixu
-        ddx = ixu * h + x0 - px
-        for b in range(3):
-            wb = wy0 if b == 0 else (wy1 if b == 1 else wy2)
-            db = dy0 if b == 0 else (dy1 if b == 1 else dy2)
-            iy = by + b
-            ddy = iy * h + y0 - py
-            w = wa * wb
-            ux = gv[ix, iy, 0]
-            uy = gv[ix, iy, 1]
-            wux = w * ux
-            wuy = w * uy
-            vx += wux
-            vy += wuy
-            b00 += wux * ddx
-            b01 += wux * ddy
-            b10 += wuy * ddx
-            b11 += wuy * ddy
-            gxw = da * wb
-            gyw = wa * db
-            l00 += ux * gxw
-            l01 += ux * gyw
-            l10 += uy * gxw
-            l11 += uy * gyw
-            if old:
-                ox += w * gv_old[ix, iy, 0]
-                oy += w * gv_old[ix, iy, 1]
-    k = 4.0 / (h * h)
-    r = 1.0 / h
-    return (vx, vy, k * b00, k * b01, k * b10, k * b11, r * l00, r * l01, r * l10, r * l11, ox, oy)
+def _gather_column(g, k, wy0, wy1, wy2, dy0, dy1, dy2, ey0, ey1, ey2):
+    """Sums over the three nodes of one column (``k``: flat offset of the lowest node's lanes):
+    Σ w_b u (4 lanes), Σ w_b' u and Σ e_b u with e_b = w_b (y_b − y_p)/h (velocity lanes)."""
+    a0 = g[k]
+    a1 = g[k + 1]
+    a2 = g[k + 2]
+    a3 = g[k + 3]
+    b0 = g[k + 4]
+    b1 = g[k + 5]
+    b2 = g[k + 6]
+    b3 = g[k + 7]
+    c0 = g[k + 8]
+    c1 = g[k + 9]
+    c2 = g[k + 10]
+    c3 = g[k + 11]
+    return (
+        wy0 * a0 + wy1 * b0 + wy2 * c0,
+        wy0 * a1 + wy1 * b1 + wy2 * c1,
+        wy0 * a2 + wy1 * b2 + wy2 * c2,
+        wy0 * a3 + wy1 * b3 + wy2 * c3,
+        dy0 * a0 + dy1 * b0 + dy2 * c0,
+        dy0 * a1 + dy1 * b1 + dy2 * c1,
+        ey0 * a0 + ey1 * b0 + ey2 * c0,
+        ey0 * a1 + ey1 * b1 + ey2 * c1,
+    )
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def gather(px, py, g, ih, x0, y0, nx, ny, periodic):
+    """G2P at (px, py) from the flat nodal velocities ``g`` (lanes of ``gv``), separably: column
+    sums first, then across the columns. Returns Σ w v_i; the APIC matrix
+    C_p = (4/h²) Σ w v_i (x_i − x_p)ᵀ; L_p = Σ v_i ⊗ ∇w_i; Σ w v_i^old (the old velocity lanes,
+    for the FLIP increment): (vx, vy, C00, C01, C10, C11, L00, L01, L10, L11, ox, oy)."""
+    bx, wx0, wx1, wx2, dx0, dx1, dx2, fx = bspline2_frac((px - x0) * ih)
+    by, wy0, wy1, wy2, dy0, dy1, dy2, fy = bspline2_frac((py - y0) * ih)
+    # w_b (y_b − y_p) / h: node b lies at (b − f_y) h
+    ey0 = -fy * wy0
+    ey1 = (1.0 - fy) * wy1
+    ey2 = (2.0 - fy) * wy2
+    i0, i1, i2 = _columns(bx, nx, periodic)
+    a0, a1, a2, a3, a4, a5, a6, a7 = _gather_column(
+        g, (i0 * ny + by) * V_LANES, wy0, wy1, wy2, dy0, dy1, dy2, ey0, ey1, ey2
+    )
+    b0, b1, b2, b3, b4, b5, b6, b7 = _gather_column(
+        g, (i1 * ny + by) * V_LANES, wy0, wy1, wy2, dy0, dy1, dy2, ey0, ey1, ey2
+    )
+    c0, c1, c2, c3, c4, c5, c6, c7 = _gather_column(
+        g, (i2 * ny + by) * V_LANES, wy0, wy1, wy2, dy0, dy1, dy2, ey0, ey1, ey2
+    )
+    ex0 = -fx * wx0
+    ex1 = (1.0 - fx) * wx1
+    ex2 = (2.0 - fx) * wx2
+    k = 4.0 * ih
+    return (
+        wx0 * a0 + wx1 * b0 + wx2 * c0,
+        wx0 * a1 + wx1 * b1 + wx2 * c1,
+        k * (ex0 * a0 + ex1 * b0 + ex2 * c0),
+        k * (wx0 * a6 + wx1 * b6 + wx2 * c6),
+        k * (ex0 * a1 + ex1 * b1 + ex2 * c1),
+        k * (wx0 * a7 + wx1 * b7 + wx2 * c7),
+        ih * (dx0 * a0 + dx1 * b0 + dx2 * c0),
+        ih * (wx0 * a4 + wx1 * b4 + wx2 * c4),
+        ih * (dx0 * a1 + dx1 * b1 + dx2 * c1),
+        ih * (wx0 * a5 + wx1 * b5 + wx2 * c5),
+        wx0 * a2 + wx1 * b2 + wx2 * c2,
+        wx0 * a3 + wx1 * b3 + wx2 * c3,
+    )
