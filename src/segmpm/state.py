@@ -114,6 +114,7 @@ class State:
             "order": np.zeros(n, dtype=np.int64),
             "flags": np.zeros(n, dtype=np.int64),
             "x_old": np.zeros((2, n)),
+            "lg": np.zeros((5, n)),
         }
         if self.cg is not None:
             from .segregation import allocate_work

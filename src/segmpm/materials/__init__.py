@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from numba import njit
 
-from .elastic import elastic_update, elastic_update_np
-from .fei2016 import fei_update, fei_update_np
+from .elastic import elastic_update, elastic_update_i1, elastic_update_np
+from .fei2016 import fei_update, fei_update_i1, fei_update_np
 from .params import KIND_FEI2016, KIND_LINEAR_ELASTIC, M_KIND, pack_material
 
 
@@ -19,6 +19,14 @@ def material_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     if prm[M_KIND] == KIND_FEI2016:
         return fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi)
     return elastic_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def material_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi):
+    """:func:`material_update` with I₁ = −ln J given (the time loop's form)."""
+    if prm[M_KIND] == KIND_FEI2016:
+        return fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi)
+    return elastic_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi)
 
 
 def material_update_np(prm, L, dt, eps, J, phi):
@@ -32,6 +40,7 @@ __all__ = [
     "KIND_FEI2016",
     "KIND_LINEAR_ELASTIC",
     "material_update",
+    "material_update_i1",
     "material_update_np",
     "pack_material",
 ]

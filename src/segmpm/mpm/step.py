@@ -1,6 +1,10 @@
 """The compiled time loop: ``advance`` runs P2G → grid update → G2P → stress update (USL) →
 segregation sub-step, until a target time or a step budget, without returning to Python.
 
+Per step (APIC/AFLIP): the strip sort, P2G (two colours), the grid update, and two passes over
+the points, G2P with advection (``update_points``) and the material law with the step check
+(``update_stress``).
+
 The time step is recomputed every step from the current state (physics.md §5.5):
 Δt = min(C_cfl h / max_p(c_p + |v_p|), C_ν h² / (2 max_p ν_p), Δt_max).
 """
@@ -12,7 +16,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from ..materials import material_update
+from ..materials import material_update, material_update_i1
 from ..segregation.closures import P_DT_TARGET, P_MODEL
 from ..segregation.grid import concentration_step
 from .params import (
@@ -75,9 +79,9 @@ def _inside(gp, xp, yp, ih):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, g, mp, dt, flags,
-               ih, x0, y0, nx, ny, periodic, lx, mode, alpha, gp):  # fmt: skip
-    """G2P, advection, J and the material update of one point (see ``update_points``)."""
+def _g2p_point(p, x, v, C, J, g, dt, flags, lg, ih, x0, y0, nx, ny, periodic, lx, mode, alpha,
+               gp):  # fmt: skip
+    """G2P, advection, and (APIC/AFLIP) J of one point (see ``update_points``)."""
     px = x[0, p]
     py = x[1, p]
     flip = mode == TRANSFER_FLIP
@@ -90,11 +94,6 @@ def _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, g, mp, dt, flag
     else:
         v[0, p] = vx
         v[1, p] = vy
-    if not flip:
-        C[0, p] = c00
-        C[1, p] = c01
-        C[2, p] = c10
-        C[3, p] = c11
     xn = px + dt * vx
     yn = py + dt * vy
     if periodic:
@@ -106,40 +105,67 @@ def _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, g, mp, dt, flag
     x[1, p] = yn
     if not flip:
         # MUSL (flip) takes the strain rate from the remapped momenta instead (see advance)
-        _stress(p, l00, l01, l10, l11, dt, v, J, eps, sig, phi, diag, s_int, g_int, mp)
+        C[0, p] = c00
+        C[1, p] = c01
+        C[2, p] = c10
+        C[3, p] = c11
+        Jn = J[p] * ((1.0 + dt * l00) * (1.0 + dt * l11) - dt * dt * l01 * l10)
+        J[p] = Jn
+        lg[0, p] = l00
+        lg[1, p] = l01
+        lg[2, p] = l10
+        lg[3, p] = l11
+        lg[4, p] = -math.log(Jn)
     flags[p] = ST_OK if _inside(gp, xn, yn, ih) else ST_LEFT_GRID
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def update_points(x, v, C, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, dt, flags,
-                  cursor, nstrips):  # fmt: skip
-    """G2P (APIC, AFLIP, or the FLIP/PIC blend of MUSL), advection, J, and the material update.
+def update_points(x, v, C, J, gp, gv, dt, flags, cursor, nstrips, lg):
+    """G2P (APIC, AFLIP, or the FLIP/PIC blend of MUSL), advection and J: the first of the two
+    point passes of a step (``update_stress`` is the second).
 
-    ``gv`` (N_x, N_y, 4): the nodal velocities of ``grid_update``. ``diag`` (6, N): pressure,
-    shear rate, inertial number, driver S, c + |v|, ν. ``flags[p]``: 0 ok, ST_NONFINITE or
+    ``gv`` (N_x, N_y, 4): the nodal velocities of ``grid_update``. ``flags[p]``: 0 ok or
     ST_LEFT_GRID. ``cursor[p]`` receives the P2G strip of the new position (for the next step's
-    sort). Returns the step check of ``_check`` fused into the same parallel loop: (status,
-    first failing point, max c + |v|, max ν).
+    sort). ``lg`` (5, N) receives the velocity gradient L (00, 01, 10, 11) and I₁ = −ln J for
+    the stress pass (not for MUSL). The material law runs as its own loop because its chain of
+    logarithm, square roots and divisions is latency-bound: in a short loop body consecutive
+    points overlap in the out-of-order window, in the long fused one they did not (measured:
+    the two passes cost 0.8 of the fused one, docs/performance.md).
     """
     n = x.shape[1]
     mode = int(gp[G_TRANSFER])
     alpha = gp[G_FLIP]
     lx = gp[G_LX]
-    h = gp[G_H]
-    ih = 1.0 / h
+    ih = 1.0 / gp[G_H]
     x0 = gp[G_X0]
     y0 = gp[G_Y0]
     nx = gv.shape[0]
     ny = gv.shape[1]
     g = gv.reshape(gv.size)
     periodic = gp[G_PERIODIC] != 0.0
+    for p in prange(n):
+        _g2p_point(p, x, v, C, J, g, dt, flags, lg, ih, x0, y0, nx, ny, periodic, lx, mode,
+                   alpha, gp)  # fmt: skip
+        cursor[p] = strip_of(x[1, p], y0, ih, nstrips)
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg):
+    """The material update of every point from ``lg`` (L and I₁ of ``update_points``), the
+    subcycle integrals, and the step check fused into the same parallel loop.
+
+    ``diag`` (6, N): pressure, shear rate, inertial number, driver S, c + |v|, ν. Returns
+    (status, first failing point, max c + |v|, max ν); the failing point is the first in index
+    order (a min-reduction), so the diagnostic does not depend on the thread count.
+    """
+    n = x.shape[1]
     smax = 0.0
     numax = 0.0
     bad = n
     for p in prange(n):
-        _g2p_point(p, x, v, C, J, eps, sig, phi, diag, s_int, g_int, g, mp, dt, flags,
-                   ih, x0, y0, nx, ny, periodic, lx, mode, alpha, gp)  # fmt: skip
-        cursor[p] = strip_of(x[1, p], y0, ih, nstrips)
+        r = material_update_i1(mp, lg[0, p], lg[1, p], lg[2, p], lg[3, p], dt, eps[0, p],
+                               eps[1, p], eps[2, p], eps[3, p], J[p], lg[4, p], phi[p])  # fmt: skip
+        _store(p, r, dt, v, eps, sig, diag, s_int, g_int)
         if not _point_ok(p, x, J, sig, diag, flags):
             bad = min(bad, p)
         smax = max(smax, diag[4, p])
@@ -170,6 +196,12 @@ def _stress(p, l00, l01, l10, l11, dt, v, J, eps, sig, phi, diag, s_int, g_int, 
     r = material_update(
         mp, l00, l01, l10, l11, dt, eps[0, p], eps[1, p], eps[2, p], eps[3, p], Jn, phi[p]
     )
+    _store(p, r, dt, v, eps, sig, diag, s_int, g_int)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _store(p, r, dt, v, eps, sig, diag, s_int, g_int):
+    """Write the material update ``r`` of point p (contract of ``fei_update``)."""
     eps[0, p] = r[0]
     eps[1, p] = r[1]
     eps[2, p] = r[2]
@@ -229,7 +261,7 @@ def _check(x, v, J, sig, diag, flags):
     """Reduce the per-point flags and speeds; returns (status, index, smax, numax).
 
     The index is the first failing point in index order (a min-reduction), so the diagnostic does
-    not depend on the thread count. (The APIC/AFLIP path does this inside ``update_points``.)"""
+    not depend on the thread count. (The APIC/AFLIP path does this inside ``update_stress``.)"""
     n = J.shape[0]
     smax = 0.0
     numax = 0.0
@@ -245,7 +277,7 @@ def _check(x, v, J, sig, diag, flags):
 @njit(cache=True, error_model="numpy")
 def advance(
     x, v, C, mass, vol0, J, eps, sig, phi, diag, s_int, g_int,
-    gp, mp, sc, grid, gv, strip_start, cursor, order, bounds, flags, x_old,
+    gp, mp, sc, grid, gv, strip_start, cursor, order, bounds, flags, x_old, lg,
     seg_prm, cg, seg_work, t_stop, max_steps,
 ):  # fmt: skip
     """Advance the state to ``t_stop`` (exactly) or by ``max_steps`` steps, whichever comes first.
@@ -291,25 +323,7 @@ def advance(
         mirror_images(gv, images)
         if flip:
             x_old[:, :] = x
-        status, idx, smax, numax = update_points(
-            x,
-            v,
-            C,
-            J,
-            eps,
-            sig,
-            phi,
-            diag,
-            s_int,
-            g_int,
-            gp,
-            mp,
-            gv,
-            dt,
-            flags,
-            cursor,
-            nstrips,
-        )
+        update_points(x, v, C, J, gp, gv, dt, flags, cursor, nstrips, lg)
         if flip:
             # MUSL: remap the updated point momenta (old positions), then the strain rate
             p2g(x_old, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, False)
@@ -317,14 +331,17 @@ def advance(
             momentum_to_velocity(gp, grid, gv)
             mirror_images(gv, images)
             update_stress_musl(x, v, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, dt, x_old)
+            status, idx, smax, numax = _check(x, v, J, sig, diag, flags)
+        else:
+            status, idx, smax, numax = update_stress(
+                x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg
+            )
 
         sc[S_TIME] = t + dt
         sc[S_STEP] += 1.0
         sc[S_DT] = dt
         sc[S_TSEG] += dt
         steps += 1
-        if flip:
-            status, idx, smax, numax = _check(x, v, J, sig, diag, flags)
         sc[S_SMAX] = smax
         sc[S_NUMAX] = numax
         if status != ST_OK:
