@@ -2,8 +2,10 @@
 
 For each size N (material points) and thread count, the seed chute case (granular model, sidewall
 friction, segregation subcycle) is built with a periodic length that gives about N points, run for
-a short settling period, then timed over a fixed number of steps. Compile time (first call) is
-reported apart. Results: particle-steps per second and ns per particle-step.
+a short settling period, then timed over ``repeats`` blocks of a fixed number of steps. Compile
+time (first call) is reported apart. Results: particle-steps per second and ns per particle-step
+of the median block (the best block and every block are in the JSON): on a shared virtual
+machine single blocks vary by tens of per cent, and the median of several is what repeats.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import Any
 import numba
 
 from . import __version__
+from .bench_taichi import summarize
 from .config import load_config
 from .io.atomic import write_json
 
@@ -36,8 +39,9 @@ def _config_for(n_points: int):
     )
 
 
-def bench_case(n_points: int, threads: int, steps: int) -> dict[str, Any]:
-    """Time ``steps`` steps of the seed chute with about ``n_points`` points on ``threads`` threads."""
+def bench_case(n_points: int, threads: int, steps: int, repeats: int = 5) -> dict[str, Any]:
+    """Time ``repeats`` blocks of ``steps`` steps of the seed chute with about ``n_points`` points
+    on ``threads`` threads."""
     from .simulation import Simulation
 
     numba.set_num_threads(threads)
@@ -47,29 +51,28 @@ def bench_case(n_points: int, threads: int, steps: int) -> dict[str, Any]:
     sim.advance(1.0, 1)  # compiles (or loads the cache)
     compile_s = time.perf_counter() - t0
     sim.advance(1.0, max(10, steps // 10))  # leave the start-up state
-    w0, s0 = sim.wall_time, sim.steps
-    sim.advance(1.0, steps)
-    wall = sim.wall_time - w0
-    n = sim.state.n
-    done = sim.steps - s0
+    walls = []
+    for _ in range(max(1, repeats)):
+        w0, s0 = sim.wall_time, sim.steps
+        sim.advance(1.0, steps)
+        if sim.steps - s0 != steps:
+            raise RuntimeError(f"bench: the chute stopped after {sim.steps - s0} of {steps} steps")
+        walls.append(sim.wall_time - w0)
     return {
-        "n_points": n,
+        "n_points": sim.state.n,
         "threads": threads,
-        "steps": done,
-        "wall_s": wall,
-        "particle_steps_per_s": done * n / wall,
-        "ns_per_particle_step": wall / (done * n) * 1e9,
+        **summarize(sim.state.n, steps, walls),
         "first_call_s": compile_s,
     }
 
 
-def peer_case(n_points: int, threads: int, steps: int) -> dict[str, Any] | None:
+def peer_case(n_points: int, threads: int, steps: int, repeats: int = 5) -> dict[str, Any] | None:
     """The Taichi mpm88 fluid step at the same N and thread count (``segmpm.bench_taichi``), in its
     own process; None if Taichi is not installed (the optional ``bench`` extra)."""
     if importlib.util.find_spec("taichi") is None:
         return None
     cmd = [sys.executable, "-m", "segmpm.bench_taichi", "--n", str(n_points),
-           "--threads", str(threads), "--steps", str(steps)]  # fmt: skip
+           "--threads", str(threads), "--steps", str(steps), "--repeats", str(repeats)]  # fmt: skip
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
     if out.returncode != 0 or not lines:
@@ -79,7 +82,12 @@ def peer_case(n_points: int, threads: int, steps: int) -> dict[str, Any] | None:
 
 
 def run_bench(
-    sizes: list[int], threads: list[int], steps: int, json_out: str | None, peer: bool = True
+    sizes: list[int],
+    threads: list[int],
+    steps: int,
+    json_out: str | None,
+    peer: bool = True,
+    repeats: int = 5,
 ) -> int:
     """Run the benchmark grid, print a table, optionally write JSON; returns the exit code.
 
@@ -88,7 +96,8 @@ def run_bench(
     max_threads = numba.config.NUMBA_NUM_THREADS
     results = []
     print(f"segmpm {__version__} bench: seed chute (Fei model + sidewall + segregation), "
-          f"{steps} timed steps per case, numba {numba.__version__}, up to {max_threads} threads")  # fmt: skip
+          f"median of {repeats} blocks of {steps} steps per case, numba {numba.__version__}, "
+          f"up to {max_threads} threads")  # fmt: skip
     print(f"{'points':>8} {'threads':>7} {'Mpart-steps/s':>14} {'ns/part-step':>13} "
           f"{'first call s':>13} {'taichi ns':>10} {'ours/taichi':>11}")  # fmt: skip
     for n in sizes:
@@ -98,8 +107,8 @@ def run_bench(
                     f"{n:>8} {t:>7}  skipped: only {max_threads} threads available", file=sys.stderr
                 )
                 continue
-            r = bench_case(n, t, steps)
-            q = peer_case(r["n_points"], t, steps) if peer else None
+            r = bench_case(n, t, steps, repeats)
+            q = peer_case(r["n_points"], t, steps, repeats) if peer else None
             if q is not None:
                 r["taichi_mpm88"] = q
                 r["cost_ratio_vs_taichi"] = r["ns_per_particle_step"] / q["ns_per_particle_step"]

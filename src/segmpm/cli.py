@@ -64,7 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="throughput benchmarks (particle-steps per second)")
     p.add_argument("--sizes", type=int, nargs="+", default=[8000, 32000], help="material points")
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts")
-    p.add_argument("--steps", type=int, default=400, help="timed steps per case")
+    p.add_argument("--steps", type=int, default=400, help="timed steps per block")
+    p.add_argument("--repeats", type=int, default=5,
+                   help="timed blocks per case (the median is reported)")  # fmt: skip
     p.add_argument("--json", dest="json_out", help="write the results to this JSON file")
     p.add_argument("--no-peer", action="store_true", help="skip the Taichi mpm88 peer")
     return ap
@@ -115,7 +117,9 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "bench":
         from .bench import run_bench
 
-        return run_bench(args.sizes, args.threads, args.steps, args.json_out, not args.no_peer)
+        return run_bench(
+            args.sizes, args.threads, args.steps, args.json_out, not args.no_peer, args.repeats
+        )
     raise AssertionError(args.command)
 
 
