@@ -6,24 +6,26 @@ Each model has a compiled per-point update with the contract of
 
 from __future__ import annotations
 
+import math
+
 from numba import njit
 
-from .elastic import elastic_update, elastic_update_i1, elastic_update_np
-from .fei2016 import fei_update, fei_update_i1, fei_update_np
+from .elastic import elastic_update_i1, elastic_update_np
+from .fei2016 import fei_update_i1, fei_update_np
 from .params import KIND_FEI2016, KIND_LINEAR_ELASTIC, M_KIND, pack_material
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def material_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     """Dispatch on the model chosen at set-up (slot ``M_KIND``)."""
-    if prm[M_KIND] == KIND_FEI2016:
-        return fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi)
-    return elastic_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi)
+    I1 = -math.log(J) if prm[M_KIND] == KIND_FEI2016 else 0.0
+    return material_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def material_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi):
-    """:func:`material_update` with I₁ = −ln J given (the time loop's form)."""
+    """:func:`material_update` with I₁ = −ln J given (the time loop's form; the linear elastic
+    model does not use it)."""
     if prm[M_KIND] == KIND_FEI2016:
         return fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi)
     return elastic_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi)
