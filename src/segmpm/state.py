@@ -110,9 +110,10 @@ class State:
             "grid": np.zeros((nx, ny, N_FIELDS)),
             "gv": np.zeros((nx, ny, V_LANES)),
             "strip_start": np.zeros(nstrips + 1, dtype=np.int64),
-            "cursor": np.zeros(n, dtype=np.int64),
-            "order": np.zeros(n, dtype=np.int64),
-            "flags": np.zeros(n, dtype=np.int64),
+            # 32-bit point indices and 8-bit flags: bytes per particle-step (docs/performance.md)
+            "cursor": np.zeros(n, dtype=np.int32),
+            "order": np.zeros(n, dtype=np.int32),
+            "flags": np.zeros(n, dtype=np.int8),
             "x_old": np.zeros((2, n)),
             "lg": np.zeros((5, n)),
         }

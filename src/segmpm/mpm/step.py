@@ -116,7 +116,9 @@ def _g2p_point(p, x, v, C, J, g, dt, flags, lg, ih, x0, y0, nx, ny, periodic, lx
         lg[2, p] = l10
         lg[3, p] = l11
         lg[4, p] = -math.log(Jn)
-    flags[p] = ST_OK if _inside(gp, xn, yn, ih) else ST_LEFT_GRID
+    # a non-finite position fails the test too (NaN compares false; x is not tested by _inside
+    # on a periodic grid): the stress pass then needs no read of x
+    flags[p] = ST_OK if (math.isfinite(xn) and _inside(gp, xn, yn, ih)) else ST_LEFT_GRID
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
@@ -150,11 +152,14 @@ def update_points(x, v, C, J, gp, gv, dt, flags, cursor, nstrips, lg):
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg):
+def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg, full):
     """The material update of every point from ``lg`` (L and I₁ of ``update_points``), the
     subcycle integrals, and the step check fused into the same parallel loop.
 
-    ``diag`` (6, N): pressure, shear rate, inertial number, driver S, c + |v|, ν. Returns
+    ``diag`` (6, N): pressure, shear rate, inertial number, driver S, c + |v|, ν. Only the
+    pressure is needed by the next step (P2G); the other rows are written when ``full`` (the
+    last step of a call of ``advance``, so every output sees them) and for a failing point.
+    ``flags[p]`` from ``update_points`` (position outside the grid or not finite). Returns
     (status, first failing point, max c + |v|, max ν); the failing point is the first in index
     order (a min-reduction), so the diagnostic does not depend on the thread count.
     """
@@ -165,11 +170,19 @@ def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg)
     for p in prange(n):
         r = material_update_i1(mp, lg[0, p], lg[1, p], lg[2, p], lg[3, p], dt, eps[0, p],
                                eps[1, p], eps[2, p], eps[3, p], J[p], lg[4, p], phi[p])  # fmt: skip
-        _store(p, r, dt, v, eps, sig, diag, s_int, g_int)
-        if not _point_ok(p, x, J, sig, diag, flags):
+        speed = _store_state(p, r, dt, v, eps, sig, diag, s_int, g_int)
+        ok = (
+            flags[p] == ST_OK
+            and math.isfinite(speed)
+            and math.isfinite(r[4] + r[5] + r[6] + r[7])
+            and J[p] > 0.0
+        )
+        if full or not ok:
+            _store_diag(p, r, speed, diag)
+        if not ok:
             bad = min(bad, p)
-        smax = max(smax, diag[4, p])
-        numax = max(numax, diag[5, p])
+        smax = max(smax, speed)
+        numax = max(numax, r[13])
     return _status(bad, n, x, J, sig, diag, flags), (bad if bad < n else -1), smax, numax
 
 
@@ -201,7 +214,15 @@ def _stress(p, l00, l01, l10, l11, dt, v, J, eps, sig, phi, diag, s_int, g_int, 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _store(p, r, dt, v, eps, sig, diag, s_int, g_int):
-    """Write the material update ``r`` of point p (contract of ``fei_update``)."""
+    """Write the material update ``r`` of point p (contract of ``fei_update``), diagnostics
+    included."""
+    _store_diag(p, r, _store_state(p, r, dt, v, eps, sig, diag, s_int, g_int), diag)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _store_state(p, r, dt, v, eps, sig, diag, s_int, g_int):
+    """Write what the next step needs of the material update ``r`` of point p: strain, stress,
+    pressure (``diag[0]``), the subcycle integrals. Returns the signal speed c + |v|."""
     eps[0, p] = r[0]
     eps[1, p] = r[1]
     eps[2, p] = r[2]
@@ -211,15 +232,21 @@ def _store(p, r, dt, v, eps, sig, diag, s_int, g_int):
     sig[2, p] = r[6]
     sig[3, p] = r[7]
     diag[0, p] = r[8]
+    s_int[p] += r[11] * dt
+    g_int[p] += r[9] * dt
+    vx = v[0, p]
+    vy = v[1, p]
+    return r[12] + math.sqrt(vx * vx + vy * vy)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _store_diag(p, r, speed, diag):
+    """The output diagnostics of point p: shear rate, I, S, c + |v|, ν (``diag`` rows 1–5)."""
     diag[1, p] = r[9]
     diag[2, p] = r[10]
     diag[3, p] = r[11]
-    vx = v[0, p]
-    vy = v[1, p]
-    diag[4, p] = r[12] + math.sqrt(vx * vx + vy * vy)
+    diag[4, p] = speed
     diag[5, p] = r[13]
-    s_int[p] += r[11] * dt
-    g_int[p] += r[9] * dt
 
 
 @njit(cache=True, error_model="numpy")
@@ -307,8 +334,11 @@ def advance(
             dt = min(dt, gp[G_VISC] * h * h / (2.0 * sc[S_NUMAX]))
         if dt < gp[G_DTMIN]:
             return ST_DT_COLLAPSE, -1, steps
+        # the last step of this call writes the output diagnostics of every point
+        last = steps + 1 >= max_steps
         if t + dt * 1.000001 >= t_stop:
             dt = t_stop - t
+            last = True
         ramp = 1.0
         if gp[G_RAMP] > 0.0:
             ramp = min(1.0, (t + dt) / gp[G_RAMP])
@@ -334,7 +364,7 @@ def advance(
             status, idx, smax, numax = _check(x, v, J, sig, diag, flags)
         else:
             status, idx, smax, numax = update_stress(
-                x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg
+                x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg, last
             )
 
         sc[S_TIME] = t + dt
