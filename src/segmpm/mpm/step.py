@@ -121,7 +121,7 @@ def _g2p_point(p, x, v, C, J, g, dt, flags, lg, ih, x0, y0, nx, ny, periodic, lx
     flags[p] = ST_OK if (math.isfinite(xn) and _inside(gp, xn, yn, ih)) else ST_LEFT_GRID
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
 def update_points(x, v, C, J, gp, gv, dt, flags, cursor, nstrips, lg):
     """G2P (APIC, AFLIP, or the FLIP/PIC blend of MUSL), advection and J: the first of the two
     point passes of a step (``update_stress`` is the second).
@@ -151,7 +151,7 @@ def update_points(x, v, C, J, gp, gv, dt, flags, cursor, nstrips, lg):
         cursor[p] = strip_of(x[1, p], y0, ih, nstrips)
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
 def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg, full):
     """The material update of every point from ``lg`` (L and I₁ of ``update_points``), the
     subcycle integrals, and the step check fused into the same parallel loop.

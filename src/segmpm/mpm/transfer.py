@@ -206,7 +206,7 @@ def _balance(strip_start, colour, nc, bounds):
         j += 1
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
 def p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, with_force):
     """Scatter mass, APIC momentum, internal force −Σ V σ·∇w, and Σ w V p (sidewall friction).
 
