@@ -94,6 +94,7 @@ def main() -> int:
                 dt,
                 w["flags"],
                 w["lg"],
+                False,
             ),
         ),  # fmt: skip
         "check (MUSL path only)": lambda: stepmod._check(x, v, J, sig, diag, w["flags"]),

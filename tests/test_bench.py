@@ -42,12 +42,49 @@ def test_bench_writes_json(tmp_path, capsys):
     assert "Mpart-steps/s" in capsys.readouterr().out
 
 
-def test_bench_taichi_peer_runs_the_same_n():
-    """The mpm88 peer (optional ``bench`` extra) runs in its own process at the requested N and
-    reports its cost with the grid that keeps about four particles per cell."""
-    pytest.importorskip("taichi")
-    from segmpm.bench import peer_case
+def test_bench_interleaves_thread_counts(tmp_path):
+    """With two thread counts the blocks alternate round by round, and the speed-up is the
+    median of the within-round ratios of the block times in the JSON."""
+    import numba
 
-    q = peer_case(2000, 1, 20, 2)
-    assert q is not None and q["n_points"] == 2000 and q["steps"] == 20 and q["repeats"] == 2
-    assert q["ns_per_particle_step"] > 0 and q["n_grid"] == round((2000 / 4) ** 0.5 / 0.4)
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs two threads")
+    out = tmp_path / "bench.json"
+    args = ["bench", "--sizes", "600", "--threads", "1", "2", "--steps", "10", "--repeats", "3",
+            "--no-peer", "--json", str(out)]  # fmt: skip
+    assert main(args) == 0
+    one, two = json.loads(out.read_text())["results"]
+    assert (one["threads"], two["threads"]) == (1, 2) and one["n_points"] == two["n_points"]
+    ratios = sorted(a / b for a, b in zip(one["block_wall_s"], two["block_wall_s"], strict=True))
+    assert two["speedup_vs_1_threads"] == pytest.approx(ratios[1], rel=1e-12)
+    assert "speedup_vs_1_threads" not in one
+
+
+def test_bench_taichi_peer_runs_the_same_n():
+    """The mpm88 peer (optional ``bench`` extra) runs in its own process at the requested N, with
+    the grid that keeps about four particles per cell, and times one block per request."""
+    pytest.importorskip("taichi")
+    from segmpm.bench import Peer
+
+    q = Peer(2000, 1, 20)
+    try:
+        assert q.facts["n_points"] == 2000 and q.facts["threads"] == 1
+        assert q.facts["n_grid"] == round((2000 / 4) ** 0.5 / 0.4)
+        walls = [q.block(), q.block()]
+    finally:
+        q.close()
+    assert all(w > 0 for w in walls) and q.proc.returncode == 0
+
+
+def test_bench_reports_the_peer_ratio_within_rounds(tmp_path):
+    """With the peer, the cost ratio is the median of ours / the peer's block time per round."""
+    pytest.importorskip("taichi")
+    out = tmp_path / "bench.json"
+    args = ["bench", "--sizes", "600", "--threads", "1", "--steps", "10", "--repeats", "3",
+            "--json", str(out)]  # fmt: skip
+    assert main(args) == 0
+    (r,) = json.loads(out.read_text())["results"]
+    q = r["taichi_mpm88"]
+    assert q["n_points"] == r["n_points"] and len(q["block_wall_s"]) == 3
+    ratios = sorted(a / b for a, b in zip(r["block_wall_s"], q["block_wall_s"], strict=True))
+    assert r["cost_ratio_vs_taichi"] == pytest.approx(ratios[1], rel=1e-12)

@@ -176,3 +176,29 @@ def test_points_wrap_across_periodic_boundary():
     np.testing.assert_allclose(st.x[1], x0[1], atol=1e-15)
     d = np.abs(st.x[0] - x0[0])
     assert np.max(np.minimum(d, L - d)) < 1e-12  # back where it started after one period
+
+
+@pytest.mark.parametrize(("threads", "chunks"), [(1, 1), (1, 3), (2, 2), (2, 5)])
+def test_counting_sort_is_the_stable_sort(threads, chunks):
+    """The parallel counting sort by strip gives NumPy's stable argsort and the strip offsets,
+    whatever the number of threads and chunks."""
+    import numba
+
+    from segmpm.mpm.transfer import counting_sort
+
+    if threads > numba.config.NUMBA_NUM_THREADS:
+        pytest.skip("needs two threads")
+    rng = np.random.default_rng(3)
+    ns = 37
+    cursor = rng.integers(0, ns, 50_001).astype(np.int32)
+    cursor[:5000] = 7  # a long run of one strip across a chunk boundary
+    strip_start = np.zeros(ns + 1, dtype=np.int64)
+    order = np.full(cursor.size, -1, dtype=np.int32)
+    numba.set_num_threads(threads)
+    try:
+        counting_sort(cursor, strip_start, order, chunks)
+    finally:
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    np.testing.assert_array_equal(order, np.argsort(cursor, kind="stable"))
+    offsets = np.concatenate([[0], np.cumsum(np.bincount(cursor, minlength=ns))])
+    np.testing.assert_array_equal(strip_start, offsets)

@@ -6,11 +6,15 @@ separating box walls, one P2G, grid update and G2P per step. Written here agains
 API (not copied), with particles at about four per cell in a square block of the unit box so that
 N particles can be set freely.
 
-Run one case per process (Taichi's thread count is fixed at ``ti.init``)::
+One case per process (Taichi's thread count is fixed at ``ti.init``)::
 
-    python -m segmpm.bench_taichi --n 32000 --threads 2 --steps 400
+    python -m segmpm.bench_taichi --n 32000 --threads 2 --steps 400 --repeats 5
 
-prints one JSON line: particle-steps per second, ns per particle-step, first-call seconds.
+prints one JSON line: particle-steps per second, ns per particle-step, first-call seconds. With
+``--serve`` the process compiles and warms up, prints a JSON line, then times one block of
+``--steps`` steps for every line ``block`` read on standard input (one JSON line each) until
+``quit``: ``segmpm bench`` uses this to interleave the peer's blocks with its own, so that both
+are timed in the same minutes of a shared machine.
 Needs the optional ``bench`` extra (``pip install -e ".[bench]"``).
 """
 
@@ -22,6 +26,7 @@ import math
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 
@@ -40,9 +45,11 @@ def summarize(n: int, steps: int, walls: list[float]) -> dict[str, Any]:
     }
 
 
-def run(n: int, threads: int, steps: int, repeats: int = 1) -> dict[str, float]:
-    """Time ``repeats`` blocks of ``steps`` mpm88 steps with ``n`` particles on ``threads`` CPU
-    threads (median and best block, as ``segmpm.bench``)."""
+def setup(n: int, threads: int, steps: int) -> tuple[Callable[[], float], dict[str, Any]]:
+    """Build, compile and warm up the mpm88 case with ``n`` particles on ``threads`` CPU threads.
+
+    Returns a function that times one block of ``steps`` steps (seconds) and the case's facts
+    (first-call seconds, grid size, Taichi version)."""
     import numpy as np
     import taichi as ti
 
@@ -127,21 +134,45 @@ def run(n: int, threads: int, steps: int, repeats: int = 1) -> dict[str, float]:
     for _ in range(max(1, steps // 10)):
         step()
     ti.sync()
-    walls = []
-    for _ in range(max(1, repeats)):
+
+    def block() -> float:
         t0 = time.perf_counter()
         for _ in range(steps):
             step()
         ti.sync()
-        walls.append(time.perf_counter() - t0)
-    return {
+        return time.perf_counter() - t0
+
+    facts = {
         "n_points": n,
         "threads": threads,
-        **summarize(n, steps, walls),
         "first_call_s": first,
         "n_grid": n_grid,
         "taichi": ti.__version__ if hasattr(ti, "__version__") else "",
     }
+    return block, facts
+
+
+def run(n: int, threads: int, steps: int, repeats: int = 1) -> dict[str, Any]:
+    """Time ``repeats`` blocks of ``steps`` mpm88 steps with ``n`` particles on ``threads`` CPU
+    threads (median and best block, as ``segmpm.bench``)."""
+    block, facts = setup(n, threads, steps)
+    walls = [block() for _ in range(max(1, repeats))]
+    return {**facts, **summarize(n, steps, walls)}
+
+
+def serve(n: int, threads: int, steps: int) -> int:
+    """The ``--serve`` loop: one timed block per ``block`` line on stdin, until ``quit``."""
+    block, facts = setup(n, threads, steps)
+    print(json.dumps(facts), flush=True)
+    while True:
+        cmd = sys.stdin.readline().strip()
+        if cmd in ("quit", ""):  # "" : end of input
+            break
+        if cmd != "block":
+            print(json.dumps({"error": f"unknown command {cmd!r}"}), flush=True)
+            return 2
+        print(json.dumps({"wall_s": block()}), flush=True)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -150,7 +181,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--serve", action="store_true",
+                    help="time one block per 'block' line on stdin (see the module docstring)")  # fmt: skip
     a = ap.parse_args(argv)
+    if a.serve:
+        return serve(a.n, a.threads, a.steps)
     print(json.dumps(run(a.n, a.threads, a.steps, a.repeats)), flush=True)
     return 0
 

@@ -345,7 +345,7 @@ def advance(
 
         if steps == 0:
             strip_index(x[1], gp, cursor, nstrips)
-        counting_sort(cursor, strip_start, order)
+        counting_sort(cursor, strip_start, order, bounds.shape[0] - 1)
         pres = diag[0]
         p2g(x, v, C, mass, vol0, J, sig, pres, gp, grid, strip_start, order, bounds, True)
         fold_images(grid, images, gp[G_GX] * ramp, gp[G_GY])

@@ -80,30 +80,42 @@ def strip_index(py, gp, cursor, nstrips):
         cursor[p] = strip_of(py[p], y0, ih, nstrips)
 
 
-@njit(cache=True, error_model="numpy")
-def counting_sort(cursor, strip_start, order):
+@njit(cache=True, error_model="numpy", parallel=True)
+def counting_sort(cursor, strip_start, order, nchunks):
     """Stable counting sort of the points by strip ``cursor``: ``order`` lists them strip by strip
-    and ``strip_start`` holds the strips' offsets (integer work only, so independent of the
-    thread count)."""
+    and ``strip_start`` holds the strips' offsets.
+
+    Parallel over contiguous chunks of the points (a histogram per chunk, one prefix sum over
+    strip-major, chunk-minor counts, a scatter per chunk): a stable sort has one result, so it
+    does not depend on the number of chunks or threads. ``nchunks``: the number of chunks (the
+    time loop uses one per thread). Integer work only."""
     ns = strip_start.shape[0] - 1
     n = cursor.shape[0]
-    strip_start[:] = 0
-    for p in range(n):
-        strip_start[cursor[p] + 1] += 1
+    nc = max(1, min(nchunks, n // 4096))
+    counts = np.zeros((nc, ns), dtype=np.int64)
+    for c in prange(nc):
+        for p in range(c * n // nc, (c + 1) * n // nc):
+            counts[c, cursor[p]] += 1
+    acc = 0
     for s in range(ns):
-        strip_start[s + 1] += strip_start[s]
-    fill = strip_start[:ns].copy()
-    for p in range(n):
-        s = cursor[p]
-        order[fill[s]] = p
-        fill[s] += 1
+        strip_start[s] = acc
+        for c in range(nc):
+            k = counts[c, s]
+            counts[c, s] = acc
+            acc += k
+    strip_start[ns] = acc
+    for c in prange(nc):
+        for p in range(c * n // nc, (c + 1) * n // nc):
+            s = cursor[p]
+            order[counts[c, s]] = p
+            counts[c, s] += 1
 
 
 @njit(cache=True, error_model="numpy")
 def sort_into_strips(py, gp, strip_start, cursor, order):
     """Strip of every point and the stable counting sort (``strip_index`` + ``counting_sort``)."""
     strip_index(py, gp, cursor, strip_start.shape[0] - 1)
-    counting_sort(cursor, strip_start, order)
+    counting_sort(cursor, strip_start, order, 1)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
