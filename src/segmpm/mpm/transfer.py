@@ -80,22 +80,42 @@ def strip_index(py, gp, cursor, nstrips):
         cursor[p] = strip_of(py[p], y0, ih, nstrips)
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _count_chunk(c, nc, cursor, counts):
+    """Histogram by strip of the points of chunk c of nc (row c of ``counts``)."""
+    n = cursor.shape[0]
+    for p in range(c * n // nc, (c + 1) * n // nc):
+        counts[c, cursor[p]] += 1
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _place_chunk(c, nc, cursor, counts, order):
+    """Place the points of chunk c at their offsets (row c of ``counts``), in index order."""
+    n = cursor.shape[0]
+    for p in range(c * n // nc, (c + 1) * n // nc):
+        s = cursor[p]
+        order[counts[c, s]] = p
+        counts[c, s] += 1
+
+
 @njit(cache=True, error_model="numpy", parallel=True)
 def counting_sort(cursor, strip_start, order, nchunks):
     """Stable counting sort of the points by strip ``cursor``: ``order`` lists them strip by strip
     and ``strip_start`` holds the strips' offsets.
 
     Parallel over contiguous chunks of the points (a histogram per chunk, one prefix sum over
-    strip-major, chunk-minor counts, a scatter per chunk): a stable sort has one result, so it
-    does not depend on the number of chunks or threads. ``nchunks``: the number of chunks (the
-    time loop uses one per thread). Integer work only."""
+    strip-major, chunk-minor counts, a placement per chunk): a stable sort has one result, so it
+    does not depend on the number of chunks or threads. ``nchunks``: at most this many chunks
+    (the time loop uses one per thread), of at least 4096 points; with one chunk no parallel
+    region is launched (small N). Integer work only."""
     ns = strip_start.shape[0] - 1
-    n = cursor.shape[0]
-    nc = max(1, min(nchunks, n // 4096))
+    nc = max(1, min(nchunks, cursor.shape[0] // 4096))
     counts = np.zeros((nc, ns), dtype=np.int64)
-    for c in prange(nc):
-        for p in range(c * n // nc, (c + 1) * n // nc):
-            counts[c, cursor[p]] += 1
+    if nc == 1:
+        _count_chunk(0, 1, cursor, counts)
+    else:
+        for c in prange(nc):
+            _count_chunk(c, nc, cursor, counts)
     acc = 0
     for s in range(ns):
         strip_start[s] = acc
@@ -104,11 +124,11 @@ def counting_sort(cursor, strip_start, order, nchunks):
             counts[c, s] = acc
             acc += k
     strip_start[ns] = acc
-    for c in prange(nc):
-        for p in range(c * n // nc, (c + 1) * n // nc):
-            s = cursor[p]
-            order[counts[c, s]] = p
-            counts[c, s] += 1
+    if nc == 1:
+        _place_chunk(0, 1, cursor, counts, order)
+    else:
+        for c in prange(nc):
+            _place_chunk(c, nc, cursor, counts, order)
 
 
 @njit(cache=True, error_model="numpy")
