@@ -314,6 +314,9 @@ def advance(
 
     ``sc`` holds the scalar state (time, step counter, last Δt, …; see mpm.params ``S_*``).
     Returns (status, point index, steps taken); status ST_OK or the reason the loop stopped.
+    The output diagnostics (``diag`` rows 1–5) are written on the last step of the call only
+    (``update_stress``), so on return with ST_OK they are that step's; after a failure, the
+    failing point's are.
     """
     h = gp[G_H]
     cfl = gp[G_CFL]
