@@ -91,7 +91,8 @@ def fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi):
     evaluates the logarithm in the G2P pass, where its latency overlaps the stencil work).
 
     Written with three divisions (ρ_s f/J, 1/√I₁, 1/√(ρ_s p_e)) and four square roots (γ̇, √I₁,
-    √(ρ_s p_e), c) per point, plus one of each where the yield cap acts; the NumPy reference :func:`fei_update_np` states the same formulas plainly.
+    √(ρ_s p_e), c) per point, plus one of each where the yield cap acts; the NumPy reference
+    :func:`fei_update_np` states the same formulas plainly.
     """
     A = prm[M_A]
     C = prm[M_C]

@@ -66,6 +66,12 @@ from .transfer import (
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _advance_J(J, l00, l01, l10, l11, dt):
+    """Volume ratio after the step: J det(I + Δt L)."""
+    return J * ((1.0 + dt * l00) * (1.0 + dt * l11) - dt * dt * l01 * l10)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def _inside(gp, xp, yp, ih):
     """True if the point's 3×3 stencil lies inside the grid (``ih`` = 1/h)."""
     xi = (yp - gp[G_Y0]) * ih
@@ -109,7 +115,7 @@ def _g2p_point(p, x, v, C, J, g, dt, flags, lg, ih, x0, y0, nx, ny, periodic, lx
         C[1, p] = c01
         C[2, p] = c10
         C[3, p] = c11
-        Jn = J[p] * ((1.0 + dt * l00) * (1.0 + dt * l11) - dt * dt * l01 * l10)
+        Jn = _advance_J(J[p], l00, l01, l10, l11, dt)
         J[p] = Jn
         lg[0, p] = l00
         lg[1, p] = l01
@@ -171,12 +177,7 @@ def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg,
         r = material_update_i1(mp, lg[0, p], lg[1, p], lg[2, p], lg[3, p], dt, eps[0, p],
                                eps[1, p], eps[2, p], eps[3, p], J[p], lg[4, p], phi[p])  # fmt: skip
         speed = _store_state(p, r, dt, v, eps, sig, diag, s_int, g_int)
-        ok = (
-            flags[p] == ST_OK
-            and math.isfinite(speed)
-            and math.isfinite(r[4] + r[5] + r[6] + r[7])
-            and J[p] > 0.0
-        )
+        ok = _values_ok(flags[p], speed, r[4] + r[5] + r[6] + r[7], J[p])
         if full or not ok:
             _store_diag(p, r, speed, diag)
         if not ok:
@@ -204,7 +205,7 @@ def update_stress_musl(x, v, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, d
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _stress(p, l00, l01, l10, l11, dt, v, J, eps, sig, phi, diag, s_int, g_int, mp):
-    Jn = J[p] * ((1.0 + dt * l00) * (1.0 + dt * l11) - dt * dt * l01 * l10)
+    Jn = _advance_J(J[p], l00, l01, l10, l11, dt)
     J[p] = Jn
     r = material_update(
         mp, l00, l01, l10, l11, dt, eps[0, p], eps[1, p], eps[2, p], eps[3, p], Jn, phi[p]
@@ -271,8 +272,10 @@ def _finite(p, x, J, sig, diag):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _point_ok(p, x, J, sig, diag, flags):
-    return flags[p] == ST_OK and _finite(p, x, J, sig, diag)
+def _values_ok(flag, speed, sig_sum, J):
+    """The step check of one point: its G2P flag (inside the grid, finite position), a finite
+    signal speed c + |v| and stress (sum of the components), J > 0."""
+    return flag == ST_OK and math.isfinite(speed) and math.isfinite(sig_sum) and J > 0.0
 
 
 @njit(cache=True, error_model="numpy")
@@ -294,7 +297,9 @@ def _check(x, v, J, sig, diag, flags):
     numax = 0.0
     bad = n
     for p in prange(n):
-        if not _point_ok(p, x, J, sig, diag, flags):
+        if not _values_ok(
+            flags[p], diag[4, p], sig[0, p] + sig[1, p] + sig[2, p] + sig[3, p], J[p]
+        ):
             bad = min(bad, p)
         smax = max(smax, diag[4, p])
         numax = max(numax, diag[5, p])
