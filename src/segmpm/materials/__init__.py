@@ -12,7 +12,19 @@ from numba import njit
 
 from .elastic import elastic_update_i1, elastic_update_np
 from .fei2016 import fei_update_i1, fei_update_np
-from .params import KIND_FEI2016, KIND_LINEAR_ELASTIC, M_KIND, pack_material
+from .params import KIND_FEI2016, KIND_LINEAR_ELASTIC, M_KIND, M_MU_B, pack_material
+
+#: the material variants of the time loop: each compiles to a loop of its own (``update_stress``)
+VAR_ELASTIC, VAR_FEI_LINEAR, VAR_FEI_POWER = range(3)
+
+
+@njit(cache=True, error_model="numpy")
+def material_variant(prm):
+    """The variant of the record ``prm``: linear elastic, or Fei 2016 with b = 1 (no powers, the
+    loop vectorises) or with b ≠ 1."""
+    if prm[M_KIND] != KIND_FEI2016:
+        return VAR_ELASTIC
+    return VAR_FEI_LINEAR if prm[M_MU_B] == 1.0 else VAR_FEI_POWER
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -24,10 +36,21 @@ def material_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def material_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi):
-    """:func:`material_update` with I₁ = −ln J given (the time loop's form; the linear elastic
-    model does not use it)."""
-    if prm[M_KIND] == KIND_FEI2016:
-        return fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi)
+    """:func:`material_update` with I₁ = −ln J given (the linear elastic model does not use it)."""
+    return material_update_var(
+        material_variant(prm), prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi
+    )
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def material_update_var(var, prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi):
+    """:func:`material_update_i1` of the variant ``var`` (``VAR_*``). Called with a constant
+    ``var``, the compiled code keeps only that branch, without calls for the linear elastic and
+    the b = 1 variants, so that a loop over points vectorises."""
+    if var == VAR_FEI_LINEAR:
+        return fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, True)
+    if var == VAR_FEI_POWER:
+        return fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, False)
     return elastic_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi)
 
 
@@ -43,6 +66,11 @@ __all__ = [
     "KIND_LINEAR_ELASTIC",
     "material_update",
     "material_update_i1",
+    "material_update_var",
+    "material_variant",
+    "VAR_ELASTIC",
+    "VAR_FEI_LINEAR",
+    "VAR_FEI_POWER",
     "material_update_np",
     "pack_material",
 ]

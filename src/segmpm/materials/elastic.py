@@ -5,11 +5,10 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
+from .._fmath import fsqrt
 from .fei2016 import deviatoric_rate, jaumann_predictor, jaumann_predictor_np
 from .params import M_F, M_LAMBDA, M_MU, M_RHO_S
 
@@ -34,7 +33,7 @@ def elastic_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, ph
     szz = lam * tr + 2.0 * mu * ezz
     p = -(sxx + syy + szz) / 3.0
     gdot = deviatoric_rate(l00, l01, l10, l11)[5]
-    c = math.sqrt((lam + 2.0 * mu) / rho)
+    c = fsqrt((lam + 2.0 * mu) / rho)
     return exx, eyy, exy, ezz, sxx, syy, sxy, szz, p, gdot, 0.0, 0.0, c, 0.0
 
 

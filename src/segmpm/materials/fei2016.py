@@ -19,6 +19,7 @@ import math
 import numpy as np
 from numba import njit
 
+from .._fmath import fsqrt
 from .params import (
     DRIVER_A,
     DRIVER_B,
@@ -65,7 +66,7 @@ def deviatoric_rate(l00, l01, l10, l11):
     dpxx = l00 - t3
     dpyy = l11 - t3
     dpzz = -t3
-    gdot = math.sqrt(2.0 * (dpxx * dpxx + dpyy * dpyy + dpzz * dpzz + 2.0 * dxy * dxy))
+    gdot = fsqrt(2.0 * (dpxx * dpxx + dpyy * dpyy + dpzz * dpzz + 2.0 * dxy * dxy))
     return dpxx, dpyy, dpzz, dxy, trd, gdot
 
 
@@ -82,17 +83,24 @@ def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     (p_e, γ̇, I, S, c, ν): elastic pressure, shear rate, inertial number, segregation driver,
     elastic wave speed, kinematic viscosity (for the time step).
     """
-    return fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, -math.log(J), phi)
+    return fei_update_i1(
+        prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, -math.log(J), phi, prm[M_MU_B] == 1.0
+    )
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi):
+def fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, linear):
     """:func:`fei_update` with the volumetric elastic strain I₁ = −ln J given (the time loop
-    evaluates the logarithm in the G2P pass, where its latency overlaps the stencil work).
+    evaluates the logarithm in the G2P pass) and ``linear`` = (b == 1), μ_d linear in I.
 
-    Written with three divisions (ρ_s f/J, 1/√I₁, 1/√(ρ_s p_e)) and four square roots (γ̇, √I₁,
-    √(ρ_s p_e), c) per point, plus one of each where the yield cap acts; the NumPy reference
-    :func:`fei_update_np` states the same formulas plainly.
+    Written without calls and with branches a compiled loop turns into selects, so that a loop
+    over points calling it with ``linear`` a constant True vectorises (SIMD, four points per AVX2
+    instruction): square roots are ``fsqrt`` (speculatable), the gas state is decided at the end
+    on values computed for every point, the ``driver`` choice is uniform over the loop. Only
+    b ≠ 1 needs powers (calls that do not vectorise). Three divisions (ρ_s f/J, 1/√I₁,
+    1/√(ρ_s p_e)) and four square roots (γ̇, √I₁, √(ρ_s p_e), c) per point, plus one of each
+    for the yield cap; the NumPy reference :func:`fei_update_np` states the same formulas
+    plainly.
     """
     A = prm[M_A]
     C = prm[M_C]
@@ -101,43 +109,40 @@ def fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi):
     dpxx, dpyy, dpzz, dxy, trd, gdot = deviatoric_rate(l00, l01, l10, l11)
 
     exx, eyy, exy, ezz = jaumann_predictor(exx, eyy, exy, ezz, l00, l01, l10, l11, dt)
-    if I1 <= 0.0:
-        # gas: no contacts, no stress; the volumetric strain keeps tracking the density
-        v = -I1 * THIRD
-        return v, v, 0.0, v, 0.0, 0.0, 0.0, 0.0, 0.0, gdot, 0.0, 0.0, 0.0, 0.0
     t3 = (exx + eyy + ezz) * THIRD
     e0xx = exx - t3
     e0yy = eyy - t3
     e0zz = ezz - t3
     e0xy = exy
     I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz + 2.0 * e0xy * e0xy)
+    # the yield cap √I₂ ≤ r_c I₁/q_φ: scale the deviator back onto it (s = 1 exactly below it)
     cap = prm[M_CAPR] * I1
-    if I2 > cap * cap:
-        s = cap / math.sqrt(I2)
-        e0xx *= s
-        e0yy *= s
-        e0zz *= s
-        e0xy *= s
-        I2 = cap * cap
+    over = I2 > cap * cap
+    s = cap / fsqrt(I2) if over else 1.0
+    e0xx *= s
+    e0yy *= s
+    e0zz *= s
+    e0xy *= s
+    I2 = cap * cap if over else I2
     third = I1 * THIRD
 
-    sq = math.sqrt(I1)
+    sq = fsqrt(I1)
     pe = 2.5 * A * I1 * sq + 0.5 * C * I2 * (1.0 / sq)
     G2 = C * sq  # 2G
     # dissipative stress, division-free form
     a = prm[M_MU_A] * prm[M_SDF]
-    b = prm[M_MU_B]
     dbar = phi * prm[M_DS] + (1.0 - phi) * prm[M_DL]
-    spe = math.sqrt(rho_s * pe)
-    if b == 1.0:
+    spe = fsqrt(rho_s * pe)
+    if linear:
         eta = a * dbar * spe
     else:
+        b = prm[M_MU_B]
         g = max(gdot, prm[M_GFLOOR])
         eta = a * dbar**b * rho_s ** (0.5 * b) * pe ** (1.0 - 0.5 * b) * g ** (b - 1.0)
     # I = γ̇ d̄ / √(p_e/ρ_s) = γ̇ d̄ ρ_s / √(ρ_s p_e)
     inertial = gdot * dbar * rho_s / spe if pe > 0.0 else 0.0
     # c² = (3.75 A + 2 C) √I₁ / ρ
-    c = math.sqrt(prm[M_CW] * sq * J * prm[M_IRHO0])
+    c = fsqrt(prm[M_CW] * sq * J * prm[M_IRHO0])
     zeta = prm[M_ZETA] * rho * c * prm[M_H]
     vol = zeta * trd
     sxx = -pe + G2 * e0xx + 2.0 * eta * dpxx + vol
@@ -154,6 +159,11 @@ def fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi):
         S = -2.0 * eta * dpyy
     S *= prm[M_KAPPA]
     nu = (eta + zeta) * J * prm[M_IRHO0]
+    if I1 <= 0.0:
+        # gas: no contacts, no stress; the volumetric strain keeps tracking the density (the
+        # contact values above, NaN for I₁ < 0, are discarded)
+        v = -third
+        return v, v, 0.0, v, 0.0, 0.0, 0.0, 0.0, 0.0, gdot, 0.0, 0.0, 0.0, 0.0
     return (
         e0xx - third,
         e0yy - third,
