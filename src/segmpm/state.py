@@ -115,7 +115,7 @@ class State:
             "order": np.zeros(n, dtype=np.int32),
             "flags": np.zeros(n, dtype=np.int8),
             "x_old": np.zeros((2, n)),
-            "lg": np.zeros((5, n)),
+            "lg": np.zeros((4, n)),
         }
         if self.cg is not None:
             from .segregation import allocate_work

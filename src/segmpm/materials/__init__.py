@@ -6,11 +6,10 @@ Each model has a compiled per-point update with the contract of
 
 from __future__ import annotations
 
-import math
-
 from numba import njit
 
-from .elastic import elastic_update_i1, elastic_update_np
+from .._fmath import flog
+from .elastic import elastic_update, elastic_update_np
 from .fei2016 import fei_update_i1, fei_update_np
 from .params import KIND_FEI2016, KIND_LINEAR_ELASTIC, M_KIND, M_MU_B, pack_material
 
@@ -30,28 +29,24 @@ def material_variant(prm):
 @njit(cache=True, error_model="numpy", inline="always")
 def material_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     """Dispatch on the model chosen at set-up (slot ``M_KIND``)."""
-    I1 = -math.log(J) if prm[M_KIND] == KIND_FEI2016 else 0.0
-    return material_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def material_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi):
-    """:func:`material_update` with I₁ = −ln J given (the linear elastic model does not use it)."""
     return material_update_var(
-        material_variant(prm), prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi
+        material_variant(prm), prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi
     )
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def material_update_var(var, prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi):
-    """:func:`material_update_i1` of the variant ``var`` (``VAR_*``). Called with a constant
+def material_update_var(var, prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
+    """:func:`material_update` of the variant ``var`` (``VAR_*``). Called with a constant
     ``var``, the compiled code keeps only that branch, without calls for the linear elastic and
-    the b = 1 variants, so that a loop over points vectorises."""
+    the b = 1 variants (I₁ = −ln J by :func:`segmpm._fmath.flog`), so that a loop over points
+    vectorises."""
     if var == VAR_FEI_LINEAR:
+        I1 = -flog(J)
         return fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, True)
     if var == VAR_FEI_POWER:
+        I1 = -flog(J)
         return fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, False)
-    return elastic_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi)
+    return elastic_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi)
 
 
 def material_update_np(prm, L, dt, eps, J, phi):
@@ -65,7 +60,6 @@ __all__ = [
     "KIND_FEI2016",
     "KIND_LINEAR_ELASTIC",
     "material_update",
-    "material_update_i1",
     "material_update_var",
     "material_variant",
     "VAR_ELASTIC",

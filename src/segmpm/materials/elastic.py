@@ -16,12 +16,6 @@ from .params import M_F, M_LAMBDA, M_MU, M_RHO_S
 @njit(cache=True, error_model="numpy", inline="always")
 def elastic_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     """Stress update of one point; same contract as :func:`segmpm.materials.fei2016.fei_update`."""
-    return elastic_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, 0.0, phi)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def elastic_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi):
-    """:func:`elastic_update` in the time loop's form (``I1`` = −ln J is not used)."""
     lam = prm[M_LAMBDA]
     mu = prm[M_MU]
     rho = prm[M_F] * prm[M_RHO_S] / J

@@ -14,12 +14,10 @@ gives every decision with the switch for the alternative.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
-from .._fmath import fsqrt
+from .._fmath import flog, fsqrt
 from .params import (
     DRIVER_A,
     DRIVER_B,
@@ -84,14 +82,14 @@ def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     elastic wave speed, kinematic viscosity (for the time step).
     """
     return fei_update_i1(
-        prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, -math.log(J), phi, prm[M_MU_B] == 1.0
+        prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, -flog(J), phi, prm[M_MU_B] == 1.0
     )
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, linear):
-    """:func:`fei_update` with the volumetric elastic strain I₁ = −ln J given (the time loop
-    evaluates the logarithm in the G2P pass) and ``linear`` = (b == 1), μ_d linear in I.
+    """:func:`fei_update` with the volumetric elastic strain I₁ = −ln J given and ``linear`` =
+    (b == 1), μ_d linear in I.
 
     Written without calls and with branches a compiled loop turns into selects, so that a loop
     over points calling it with ``linear`` a constant True vectorises (SIMD, four points per AVX2

@@ -130,7 +130,6 @@ def _g2p_point(p, x, v, C, J, g, dt, flags, lg, ih, x0, y0, nx, ny, periodic, lx
         lg[1, p] = l01
         lg[2, p] = l10
         lg[3, p] = l11
-        lg[4, p] = -math.log(Jn)
     # a non-finite position fails the test too (NaN compares false; x is not tested by _inside
     # on a periodic grid): the stress pass then needs no read of x
     flags[p] = ST_OK if (math.isfinite(xn) and _inside(gp, xn, yn, ih)) else ST_LEFT_GRID
@@ -143,11 +142,9 @@ def update_points(x, v, C, J, gp, gv, dt, flags, cursor, nstrips, lg):
 
     ``gv`` (N_x, N_y, 4): the nodal velocities of ``grid_update``. ``flags[p]``: 0 ok or
     ST_LEFT_GRID. ``cursor[p]`` receives the P2G strip of the new position (for the next step's
-    sort). ``lg`` (5, N) receives the velocity gradient L (00, 01, 10, 11) and I₁ = −ln J for
-    the stress pass (not for MUSL). The material law runs as its own loop because its chain of
-    logarithm, square roots and divisions is latency-bound: in a short loop body consecutive
-    points overlap in the out-of-order window, in the long fused one they did not (measured:
-    the two passes cost 0.8 of the fused one, docs/performance.md).
+    sort). ``lg`` (4, N) receives the velocity gradient L (00, 01, 10, 11) for the stress pass
+    (not for MUSL). The material law runs as its own loop, vectorised over points
+    (``update_stress``); the stencil's indirect loads keep this one scalar.
     """
     n = x.shape[1]
     mode = int(gp[G_TRANSFER])
@@ -175,8 +172,8 @@ B_GDOT, B_I, B_S, B_SPEED, B_NU, B_BAD, B_ROWS = range(7)
 
 @njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
 def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg, full):
-    """The material update of every point from ``lg`` (L and I₁ of ``update_points``), the
-    subcycle integrals, and the step check fused into the same parallel loop.
+    """The material update of every point from ``lg`` (L of ``update_points``), the subcycle
+    integrals, and the step check fused into the same parallel loop.
 
     ``diag`` (6, N): pressure, shear rate, inertial number, driver S, c + |v|, ν. Only the
     pressure is needed by the next step (P2G); the other rows are written when ``full`` (the
@@ -225,7 +222,7 @@ def _stress_block(var, lo, m, buf, v, J, eps, sig, phi, diag, s_int, g_int, mp, 
         p = base + u
         Jp = J[p]
         r = material_update_var(var, mp, lg[0, p], lg[1, p], lg[2, p], lg[3, p], dt, eps[0, p],
-                                eps[1, p], eps[2, p], eps[3, p], Jp, lg[4, p], phi[p])  # fmt: skip
+                                eps[1, p], eps[2, p], eps[3, p], Jp, phi[p])  # fmt: skip
         speed = _store_state(p, r, dt, v, eps, sig, diag, s_int, g_int)
         ok = _values_ok(flags[p], speed, r[4] + r[5] + r[6] + r[7], Jp)
         buf[B_GDOT, u] = r[9]
