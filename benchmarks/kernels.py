@@ -95,6 +95,7 @@ def main() -> int:
                 w["flags"],
                 w["lg"],
                 False,
+                numba.get_num_threads(),
             ),
         ),  # fmt: skip
         "check (MUSL path only)": lambda: stepmod._check(x, v, J, sig, diag, w["flags"]),

@@ -58,7 +58,7 @@ def _run(prm, a, full):
     out = {k: v.copy() for k, v in a.items()}
     r = S.update_stress(out["x"], out["v"], out["J"], out["eps"], out["sig"], out["phi"],
                         out["diag"], out["s_int"], out["g_int"], prm, DT, out["flags"], out["lg"],
-                        full)  # fmt: skip
+                        full, numba.get_num_threads())  # fmt: skip
     return r, out
 
 

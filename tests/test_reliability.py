@@ -141,6 +141,24 @@ def test_resume_refuses_without_checkpoint(tmp_path, capsys):
     assert os.listdir(tmp_path) == []
 
 
+def test_compiled_time_loop_is_cached():
+    """Numba will not cache a function that uses dynamic globals (``numba.get_num_threads()``
+    called inside the loop is one) and then compiles it again in every process, one to two
+    minutes before each run starts. The time loop and its kernels must be cacheable."""
+    code = (
+        "import warnings; warnings.simplefilter('always')\n"
+        "from segmpm.config import load_config\n"
+        "from segmpm.simulation import Simulation\n"
+        "cfg = load_config(overrides=['output.progress=false', 'geometry.depth=0.002',\n"
+        "                             'geometry.length=0.002'])\n"
+        "Simulation(cfg).advance(1.0, 3)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], env=SUBPROCESS_ENV, capture_output=True,
+                       text=True, timeout=600)  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert "Cannot cache" not in r.stderr, r.stderr
+
+
 def test_results_do_not_depend_on_thread_count():
     import numba
     from conftest import make_sim

@@ -163,7 +163,7 @@ def update_points(x, v, C, J, gp, gv, dt, flags, cursor, nstrips, lg):
         cursor[p] = strip_of(x[1, p], y0, ih, nstrips)
 
 
-#: points per block of the material pass (``update_stress``)
+#: points per block of the material pass (``update_stress``), at most
 BLOCK = 512
 
 #: rows of a block's buffer in ``update_stress``: shear rate, I, S, c + |v|, ν, failed (1.0)
@@ -171,7 +171,7 @@ B_GDOT, B_I, B_S, B_SPEED, B_NU, B_BAD, B_ROWS = range(7)
 
 
 @njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
-def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg, full):
+def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg, full, threads):
     """The material update of every point from ``lg`` (L of ``update_points``), the subcycle
     integrals, and the step check fused into the same parallel loop.
 
@@ -181,21 +181,25 @@ def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg,
     ``flags[p]`` from ``update_points`` (position outside the grid or not finite). Returns
     (status, first failing point, max c + |v|, max ν); the failing point is the first in index
     order (a min-reduction), so the diagnostic does not depend on the thread count.
+    ``threads``: the number of threads, which only sets the block size.
 
-    Blocks of ``BLOCK`` points run in parallel. In a block, a loop without reductions or calls
+    Blocks of up to ``BLOCK`` points run in parallel. In a block, a loop without reductions or calls
     (``_stress_block``, vectorised: four points per AVX2 instruction) updates the state and
     leaves the per-point diagnostics in a buffer, which a short scalar loop reduces
     (``_reduce_block``). The material variant is a constant in each of the three loops.
     """
     n = x.shape[1]
     var = material_variant(mp)
+    # at least two blocks per thread, so that few points (the seed case: 596) still split evenly;
+    # the block size changes no result (each point on its own, exact max/min reductions)
+    size = max(8, min(BLOCK, 8 * ((n + 16 * threads - 1) // (16 * threads))))
     smax = 0.0
     numax = 0.0
     bad = n
-    for blk in prange((n + BLOCK - 1) // BLOCK):
-        lo = blk * BLOCK
-        m = min(BLOCK, n - lo)
-        buf = np.empty((B_ROWS, BLOCK))
+    for blk in prange((n + size - 1) // size):
+        lo = blk * size
+        m = min(size, n - lo)
+        buf = np.empty((B_ROWS, size))
         if var == VAR_FEI_LINEAR:
             _stress_block(VAR_FEI_LINEAR, lo, m, buf, v, J, eps, sig, phi, diag, s_int, g_int,
                           mp, dt, flags, lg)  # fmt: skip
@@ -441,7 +445,21 @@ def advance(
             status, idx, smax, numax = _check(x, v, J, sig, diag, flags)
         else:
             status, idx, smax, numax = update_stress(
-                x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg, last
+                x,
+                v,
+                J,
+                eps,
+                sig,
+                phi,
+                diag,
+                s_int,
+                g_int,
+                mp,
+                dt,
+                flags,
+                lg,
+                last,
+                bounds.shape[0] - 1,
             )
 
         sc[S_TIME] = t + dt
