@@ -13,19 +13,22 @@ from segmpm._fmath import flog, fsqrt
 
 
 @njit(cache=True, error_model="numpy")
+def _apply(a):
+    """``flog`` and ``fsqrt`` of every element."""
+    lg = np.empty_like(a)
+    sq = np.empty_like(a)
+    for i in range(a.shape[0]):
+        lg[i] = flog(a[i])
+        sq[i] = fsqrt(a[i])
+    return lg, sq
+
+
 def _flog(a):
-    out = np.empty_like(a)
-    for i in range(a.shape[0]):
-        out[i] = flog(a[i])
-    return out
+    return _apply(a)[0]
 
 
-@njit(cache=True, error_model="numpy")
 def _fsqrt(a):
-    out = np.empty_like(a)
-    for i in range(a.shape[0]):
-        out[i] = fsqrt(a[i])
-    return out
+    return _apply(a)[1]
 
 
 def _samples(rng):

@@ -95,9 +95,9 @@ def fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, l
     over points calling it with ``linear`` a constant True vectorises (SIMD, four points per AVX2
     instruction): square roots are ``fsqrt`` (speculatable), the gas state is decided at the end
     on values computed for every point, the ``driver`` choice is uniform over the loop. Only
-    b ≠ 1 needs powers (calls that do not vectorise). Three divisions (ρ_s f/J, 1/√I₁,
-    1/√(ρ_s p_e)) and four square roots (γ̇, √I₁, √(ρ_s p_e), c) per point, plus one of each
-    for the yield cap; the NumPy reference :func:`fei_update_np` states the same formulas
+    b ≠ 1 needs powers (calls that do not vectorise). Four divisions (ρ_s f/J, 1/√I₁,
+    I's 1/√(ρ_s p_e), the yield cap's) and five square roots (γ̇, √I₁, √(ρ_s p_e), c, the
+    cap's √I₂) per point; the NumPy reference :func:`fei_update_np` states the same formulas
     plainly.
     """
     A = prm[M_A]

@@ -183,9 +183,9 @@ def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg,
     order (a min-reduction), so the diagnostic does not depend on the thread count.
     ``threads``: the number of threads, which only sets the block size.
 
-    Blocks of up to ``BLOCK`` points run in parallel. In a block, a loop without reductions or calls
-    (``_stress_block``, vectorised: four points per AVX2 instruction) updates the state and
-    leaves the per-point diagnostics in a buffer, which a short scalar loop reduces
+    Blocks of up to ``BLOCK`` points run in parallel. In a block, a loop without reductions or
+    calls (``_stress_block``, vectorised: four points per AVX2 instruction) updates the state
+    and leaves the per-point diagnostics in a buffer, which a short scalar loop reduces
     (``_reduce_block``). The material variant is a constant in each of the three loops.
     """
     n = x.shape[1]
@@ -445,22 +445,9 @@ def advance(
             status, idx, smax, numax = _check(x, v, J, sig, diag, flags)
         else:
             status, idx, smax, numax = update_stress(
-                x,
-                v,
-                J,
-                eps,
-                sig,
-                phi,
-                diag,
-                s_int,
-                g_int,
-                mp,
-                dt,
-                flags,
-                lg,
-                last,
+                x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg, last,
                 bounds.shape[0] - 1,
-            )
+            )  # fmt: skip
 
         sc[S_TIME] = t + dt
         sc[S_STEP] += 1.0
