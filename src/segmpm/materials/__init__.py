@@ -10,8 +10,8 @@ from numba import njit
 
 from .._fmath import flog
 from .elastic import elastic_update, elastic_update_np
-from .fei2016 import fei_update_i1, fei_update_np
-from .params import KIND_FEI2016, KIND_LINEAR_ELASTIC, M_KIND, M_MU_B, pack_material
+from .fei2016 import fei_update_i1, fei_update_np, linear_in_I
+from .params import KIND_FEI2016, KIND_LINEAR_ELASTIC, M_KIND, pack_material
 
 #: the material variants of the time loop: each compiles to a loop of its own (``update_stress``)
 VAR_ELASTIC, VAR_FEI_LINEAR, VAR_FEI_POWER = range(3)
@@ -23,7 +23,7 @@ def material_variant(prm):
     loop vectorises) or with b ≠ 1."""
     if prm[M_KIND] != KIND_FEI2016:
         return VAR_ELASTIC
-    return VAR_FEI_LINEAR if prm[M_MU_B] == 1.0 else VAR_FEI_POWER
+    return VAR_FEI_LINEAR if linear_in_I(prm) else VAR_FEI_POWER
 
 
 @njit(cache=True, error_model="numpy", inline="always")

@@ -82,8 +82,14 @@ def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
     elastic wave speed, kinematic viscosity (for the time step).
     """
     return fei_update_i1(
-        prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, -flog(J), phi, prm[M_MU_B] == 1.0
+        prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, -flog(J), phi, linear_in_I(prm)
     )
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def linear_in_I(prm):
+    """b = 1: μ_d = a I is linear in I and the update needs no powers."""
+    return prm[M_MU_B] == 1.0
 
 
 @njit(cache=True, error_model="numpy", inline="always")
