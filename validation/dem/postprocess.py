@@ -71,8 +71,11 @@ def read_dump(path):
     return t, d
 
 
+WORK = HERE  # set by --workdir
+
+
 def list_dumps():
-    files = glob.glob(os.path.join(HERE, "dumps", "flow_*.dump"))
+    files = glob.glob(os.path.join(WORK, "dumps", "flow_*.dump"))
     steps = [int(re.findall(r"flow_(\d+)\.dump", f)[0]) for f in files]
     order = np.argsort(steps)
     return [files[i] for i in order], [steps[i] for i in order]
@@ -221,12 +224,18 @@ def write_csv(path, rows, header):
 
 
 def main():
+    global WORK
+    import argparse
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--workdir", default=HERE, help="run directory (default: the seed reference)")
+    WORK = os.path.abspath(ap.parse_args().workdir)
     files, steps = list_dumps()
     if not files:
         print("no dumps")
         return 1
     info = {}
-    ipath = os.path.join(HERE, "run_info.json")
+    ipath = os.path.join(WORK, "run_info.json")
     if os.path.exists(ipath):
         info = json.load(open(ipath))
     cache = {}
@@ -328,8 +337,8 @@ def main():
         f"bins: dz = {DZ} m slabs, volume-weighted (exact slab-cut sphere volumes); phi_small and velocity_x over free grains",
         f"time averaging: dumps within +-{HALF_WIN} s of time_s (t=0: single snapshot); n_snapshots per row",
     ]
-    write_csv(os.path.join(HERE, "reference_profiles.csv"), rows, header)
-    write_csv(os.path.join(HERE, "reference_profiles_dense.csv"), rows_d, header)
+    write_csv(os.path.join(WORK, "reference_profiles.csv"), rows, header)
+    write_csv(os.path.join(WORK, "reference_profiles_dense.csv"), rows_d, header)
     meta = dict(
         datum_z0_m=z0,
         datum_definition="mean z of glued-grain centres + 1.5 mm (mean top of the glued layer)",
@@ -350,9 +359,9 @@ def main():
         summary_dense=summ_d,
         overlap_check=ov,
     )
-    with open(os.path.join(HERE, "reference_profiles.json"), "w") as fh:
+    with open(os.path.join(WORK, "reference_profiles.json"), "w") as fh:
         json.dump(meta, fh, indent=1)
-    with open(os.path.join(HERE, "results_summary.md"), "w") as fh:
+    with open(os.path.join(WORK, "results_summary.md"), "w") as fh:
         fh.write(
             "| t [s] | bed surface y [mm] | bulk f | u_surface [m/s] | u(y=10 mm) [m/s] | "
             "static below y [mm] (u < 1% u_s) | phi_s bottom 0-5 mm | phi_s top 5 mm |\n"

