@@ -87,6 +87,7 @@ def main() -> int:
                 eps,
                 sig,
                 st.phi,
+                st.gf,
                 diag,
                 st.s_int,
                 st.g_int,

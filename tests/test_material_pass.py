@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from segmpm.config import load_config
-from segmpm.materials import VAR_FEI_LINEAR, material_update_np, pack_material
+from segmpm.materials import VAR_FEI_LINEAR, VAR_NGF, material_update_np, pack_material
 from segmpm.materials.params import M_CAPR
 from segmpm.mpm import step as S
 from segmpm.mpm.params import ST_LEFT_GRID, ST_NONFINITE, ST_OK
@@ -23,6 +23,12 @@ CASES = {
     "fei-b1-driverA-bulk": ["segregation.driver='A'", "material.bulk_viscosity=0.1"],
     "fei-power-driverC": ["material.b=0.7", "segregation.driver='C'"],
     "linear-elastic": ["material.model='linear_elastic'"],
+    "nonlocal-driverG": ["material.rheology='nonlocal'", "material.q_phi=0.6",
+                         "segregation.model='hill_tan_fluidity'"],  # fmt: skip
+    "nonlocal-driverP-bulk": ["material.rheology='nonlocal'", "material.q_phi=0.6",
+                              "segregation.model='liu_henann'", "material.bulk_viscosity=0.1"],
+    "nonlocal-driverA": ["material.rheology='nonlocal'", "material.q_phi=0.6",
+                         "segregation.driver='A'"],  # fmt: skip
 }
 #: a partial last block
 N = 3 * S.BLOCK + 37
@@ -43,6 +49,8 @@ def _inputs(overrides, rng):
         "eps": np.ascontiguousarray(eps.T),
         "sig": np.zeros((4, N)),
         "phi": rng.uniform(0, 1, N),
+        # fluidity, 1/s: up to the order of 1/Δt of the return (the nonlocal flow rule)
+        "gf": rng.uniform(0, 2e3, N),
         "diag": np.full((6, N), -7.0),  # a sentinel: rows 1-5 are written only when asked
         "s_int": rng.uniform(0, 1e-3, N),
         "g_int": rng.uniform(0, 1e-3, N),
@@ -57,7 +65,7 @@ def _inputs(overrides, rng):
 def _run(prm, a, full):
     out = {k: v.copy() for k, v in a.items()}
     r = S.update_stress(out["x"], out["v"], out["J"], out["eps"], out["sig"], out["phi"],
-                        out["diag"], out["s_int"], out["g_int"], prm, DT, out["flags"], out["lg"],
+                        out["gf"], out["diag"], out["s_int"], out["g_int"], prm, DT, out["flags"], out["lg"],
                         full, numba.get_num_threads())  # fmt: skip
     return r, out
 
@@ -76,7 +84,7 @@ def test_material_pass_matches_reference(case, rng):
     (status, idx, smax, numax), out = _run(prm, a, True)
     assert status == ST_OK and idx == -1
     e_ref, s_ref, p_ref, g_ref, i_ref, S_ref, c_ref, nu_ref = material_update_np(
-        prm, L, DT, eps, J, a["phi"]
+        prm, L, DT, eps, J, a["phi"], a["gf"]
     )
     np.testing.assert_allclose(out["eps"].T, e_ref, rtol=1e-10, atol=1e-16)
     np.testing.assert_allclose(out["sig"].T, s_ref, rtol=1e-10, atol=1e-9)
@@ -132,24 +140,33 @@ def test_material_pass_does_not_depend_on_thread_count(rng):
         np.testing.assert_array_equal(runs[0][1][k], runs[1][1][k], err_msg=k)
 
 
-@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="x86 instruction names")
-def test_material_loop_is_vectorised():
-    """The b = 1 loop of the material pass compiles to packed (SIMD) square roots. A call or a
-    branch that LLVM cannot turn into a select in the loop body, or a memory-check threshold
-    below the loop's needs (``segmpm._llvm_options``), would silently leave it scalar and the
-    pass twice as slow (docs/performance.md). Compiled fresh (cached code cannot be inspected)
-    as the body of a parallel loop, the context in which ``update_stress`` runs it."""
+def _one_block(var):
+    """One block of the material pass, compiled fresh with the variant ``var`` a compile-time
+    constant (a closure variable), as the body of a parallel loop, the context in which
+    ``update_stress`` runs it (cached code cannot be inspected)."""
 
     @numba.njit(error_model="numpy", parallel=True, fastmath={"contract"})
-    def one_block(v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg):
+    def one_block(v, J, eps, sig, phi, gf, diag, s_int, g_int, mp, dt, flags, lg):
         buf = np.empty((S.B_ROWS, S.BLOCK))
         for _ in numba.prange(1):
-            S._stress_block(VAR_FEI_LINEAR, 0, min(S.BLOCK, J.shape[0]), buf, v, J, eps, sig,
-                            phi, diag, s_int, g_int, mp, dt, flags, lg)  # fmt: skip
+            S._stress_block(var, 0, min(S.BLOCK, J.shape[0]), buf, v, J, eps, sig, phi, gf,
+                            diag, s_int, g_int, mp, dt, flags, lg)  # fmt: skip
         return buf
 
-    prm, _, _, _, a = _inputs([], np.random.default_rng(0))
-    one_block(a["v"], a["J"], a["eps"], a["sig"], a["phi"], a["diag"], a["s_int"], a["g_int"],
-              prm, DT, a["flags"], a["lg"])  # fmt: skip
+    return one_block
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="x86 instruction names")
+@pytest.mark.parametrize("var", [VAR_FEI_LINEAR, VAR_NGF], ids=["fei-b1", "nonlocal"])
+def test_material_loop_is_vectorised(var):
+    """The b = 1 and the nonlocal loops of the material pass compile to packed (SIMD) square
+    roots. A call or a branch that LLVM cannot turn into a select in the loop body, or a
+    memory-check threshold below the loop's needs (``segmpm._llvm_options``), would silently
+    leave it scalar and the pass twice as slow (docs/performance.md)."""
+    over = CASES["nonlocal-driverG"] if var == VAR_NGF else []
+    prm, _, _, _, a = _inputs(over, np.random.default_rng(0))
+    one_block = _one_block(var)
+    one_block(a["v"], a["J"], a["eps"], a["sig"], a["phi"], a["gf"], a["diag"], a["s_int"],
+              a["g_int"], prm, DT, a["flags"], a["lg"])  # fmt: skip
     asm = one_block.inspect_asm(one_block.signatures[0])
     assert re.search(r"\bv?sqrtpd\b", asm), "the material loop is not vectorised"

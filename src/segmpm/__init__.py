@@ -12,6 +12,7 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
+from . import _cache  # noqa: F401, E402  (before any kernel is defined: keyed Numba cache)
 from .config import Config, ConfigError, load_config
 
 __all__ = ["Config", "ConfigError", "Simulation", "load_config", "__version__"]

@@ -84,6 +84,22 @@ class MaterialConfig(_Section):
     """Constitutive model: Fei et al. 2016 (physics.md §1) or linear elasticity (verification)."""
 
     model: Literal["fei2016", "linear_elastic"] = "fei2016"
+    #: flow rule: "local" (the seed's yield cap + μ(I) dissipative stress, μ = q_c + a I^b) or
+    #: "nonlocal" (nonlocal granular fluidity: γ̇ᵖ = g μ with the fluidity g of the dynamic
+    #: Kamrin–Henann equation; it replaces the cap and σ^d, docs/model.md "Nonlocal rheology").
+    rheology: Literal["local", "nonlocal"] = "local"
+    #: nonlocal: μ_s, the static friction of the fluidity model (g_loc = 0 for μ ≤ μ_s).
+    static_friction: Annotated[float, Field(gt=0, le=2, allow_inf_nan=False)] = 0.3819
+    #: nonlocal: b of g_loc = √(p/ρ_s d̄²)(μ − μ_s)/(b μ), i.e. the local law μ = μ_s + b I.
+    rate_sensitivity: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 0.9377
+    #: nonlocal: the nonlocal amplitude A (cooperativity length ξ = A d̄ / √|μ − μ_s|); 0 is the
+    #: local limit.
+    nonlocal_amplitude: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.48
+    #: nonlocal: t₀ of t₀ ∂g/∂t = A² d̄² ∇²g − (μ_s − μ) g − b μ √(ρ_s d̄²/p) g², s.
+    fluidity_time: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = 1.0e-3
+    #: nonlocal: target interval of the fluidity update, s (0 = t₀/4); it is never shorter than
+    #: one MPM step.
+    fluidity_dt: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 0.0
     #: grain (material) density ρ_s, kg/m³.
     grain_density: Annotated[float, Field(gt=0, le=1e5, allow_inf_nan=False)] = 2650.0
     #: solid volume fraction f of the mixture (bulk density ρ = f ρ_s).
@@ -134,12 +150,18 @@ class SegregationConfig(_Section):
 
     #: closure: the seed's reduced Hill–Tan Eq. 6 (default), the full vector Eq. 1, Gray–Thornton,
     #: Fan et al. 2014, or none.
-    model: Literal["hill_tan_reduced", "hill_tan_full", "gray_thornton", "fan2014", "none"] = (
-        "hill_tan_reduced"
-    )
-    #: driver S of the kinetic-stress term (physics.md §2.4): A = μ_d p, B = κ_T ρ(γ̇ d̄)², C = σ^d_yy.
-    #: Default B: it reproduces our DEM reference of the seed case better than A (docs/validation.md).
-    driver: Literal["A", "B", "C"] = "B"
+    #: "liu_henann": the relative flux driven by shear-rate and pressure gradients (Liu, Singh &
+    #: Henann 2023; Singh, Liu & Henann 2024); "hill_tan_fluidity": the Hill–Tan flux (as
+    #: hill_tan_full) with the kinetic stress σ^k = κ_g ρ (g d̄)² of the fluidity (nonlocal only).
+    model: Literal[
+        "hill_tan_reduced", "hill_tan_full", "hill_tan_fluidity", "liu_henann", "gray_thornton",
+        "fan2014", "none",
+    ] = "hill_tan_reduced"  # fmt: skip
+    #: driver S of the kinetic-stress term (docs/segregation.md): A = μ_d p, B = κ_T ρ(γ̇ d̄)²,
+    #: C = σ^d_yy, P = p_e, G = κ_g ρ (g d̄)² (nonlocal only). liu_henann always uses P and
+    #: hill_tan_fluidity G. Default B: it reproduces our DEM reference of the seed case better
+    #: than A (docs/validation.md).
+    driver: Literal["A", "B", "C", "P", "G"] = "B"
     #: scale factor κ on S.
     kappa: Annotated[float, Field(ge=0, le=1e3, allow_inf_nan=False)] = 1.0
     #: κ_T of driver B.
@@ -159,6 +181,13 @@ class SegregationConfig(_Section):
     #: Fan et al. 2014: segregation velocity factor S_r (m) in w = S_r γ̇ (1-φ), and the D prefactor.
     fan_S: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 1.0e-4
     fan_D_coeff: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.042
+    #: κ_g of σ^k = κ_g ρ (g d̄)² (driver G): 1/F² of the fluctuation speed δv = g d̄ / F.
+    kappa_g: Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)] = 1.0
+    #: liu_henann: w = d̄² (−C_seg ∂γ̇/∂n + C_p (γ̇/p) ∂p/∂n) (positive along n, small grains),
+    #: D = C_diff γ̇ d̄² (docs/segregation.md).
+    lh_C_seg: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.2
+    lh_C_p: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.2
+    lh_C_diff: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.042
     #: extra-grid cell size h_c, m (0 = half the MPM cell).
     cell_size: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.0
     #: minimum fill fraction θ_min of an active concentration cell.
@@ -312,6 +341,32 @@ class Config(_Section):
         if hc > 0 and hc > 4 * h:
             raise ValueError(
                 f"segregation.cell_size = {hc} must be at most 4 × grid.cell_size = {4 * h}"
+            )
+        m = self.material
+        if m.rheology == "nonlocal":
+            if m.model != "fei2016":
+                raise ValueError(
+                    f"material.rheology = 'nonlocal' needs material.model = 'fei2016' (the "
+                    f"Jiang–Liu elasticity it relaxes); got material.model = {m.model!r}"
+                )
+            q_c = m.q_phi * 2.0 * m.cap_ratio / (1.0 + m.cap_ratio**2)
+            if q_c <= m.static_friction:
+                raise ValueError(
+                    f"material.q_phi = {m.q_phi} (with cap_ratio = {m.cap_ratio}) caps the elastic "
+                    f"stress ratio at {q_c:.4g}, not above material.static_friction = "
+                    f"{m.static_friction}: a nonlocal flow needs stress ratios above μ_s, so "
+                    "q_phi must exceed the largest stress ratio of the flow (e.g. q_phi = 0.6; "
+                    "docs/model.md, \"Nonlocal rheology\")"
+                )
+        needs_g = self.segregation.model == "hill_tan_fluidity" or (
+            self.segregation.driver == "G" and self.segregation.model in
+            ("hill_tan_reduced", "hill_tan_full")
+        )  # fmt: skip
+        if needs_g and m.rheology != "nonlocal":
+            raise ValueError(
+                f"segregation.model = {self.segregation.model!r} with segregation.driver = "
+                f"{self.segregation.driver!r} uses the fluidity g: it needs material.rheology = "
+                "'nonlocal'"
             )
         if self.time.dt_min >= self.time.dt_max:
             raise ValueError(

@@ -111,7 +111,7 @@ class Simulation:
             return
         st = self.state
         if st.sc[S_STEP] == 0:
-            prime(st.J, st.eps, st.sig, st.phi, st.diag, st.mp, st.v)
+            prime(st.J, st.eps, st.sig, st.phi, st.gf, st.diag, st.mp, st.v)
             st.sc[S_SMAX] = float(np.max(st.diag[D_SPEED])) if st.n else 0.0
             st.sc[S_NUMAX] = float(np.max(st.diag[5])) if st.n else 0.0
         self._primed = True
@@ -133,10 +133,10 @@ class Simulation:
         st, w = self.state, self.state.work
         t0 = _time.perf_counter()
         status, idx, n = advance(
-            st.x, st.v, st.C, st.mass, st.vol0, st.J, st.eps, st.sig, st.phi, st.diag,
+            st.x, st.v, st.C, st.mass, st.vol0, st.J, st.eps, st.sig, st.phi, st.gf, st.diag,
             st.s_int, st.g_int, st.gp, st.mp, st.sc, w["grid"], w["gv"],
             w["strip_start"], w["cursor"], w["order"], _bounds(w), w["flags"], w["x_old"], w["lg"],
-            st.seg_prm, st.cg, st.seg_work, float(t_stop), int(max_steps),
+            w["fw"], st.seg_prm, st.cg, st.seg_work, float(t_stop), int(max_steps),
         )  # fmt: skip
         self.wall_time += _time.perf_counter() - t0
         if status != ST_OK:

@@ -14,6 +14,7 @@ J          (N,)      volume ratio det F relative to V⁰ (I₁ = −ln J for fei
 eps        (4, N)    elastic strain ε^e (xx, yy, xy, zz), tension positive
 sig        (4, N)    Cauchy stress σ (xx, yy, xy, zz), Pa
 phi        (N,)      small-grain concentration φ_s
+gf         (N,)      granular fluidity g (nonlocal rheology; 0 otherwise), 1/s
 diag       (6, N)    p_e (Pa), γ̇ (1/s), I, S (Pa), c + |v| (m/s), ν (m²/s)
 s_int      (N,)      ∫ S dt over the current segregation subcycle, Pa s
 g_int      (N,)      ∫ γ̇ dt over the current segregation subcycle
@@ -28,11 +29,14 @@ from typing import Any
 
 import numpy as np
 
+from .mpm.fluidity import allocate as fluidity_work
 from .mpm.params import G_NX, G_NY, S_NSLOTS
 from .mpm.transfer import N_FIELDS, STRIP, V_LANES
 
 #: arrays that define the physical state (saved in checkpoints)
-STATE_ARRAYS = ("x", "v", "C", "mass", "vol0", "J", "eps", "sig", "phi", "diag", "s_int", "g_int")
+STATE_ARRAYS = (
+    "x", "v", "C", "mass", "vol0", "J", "eps", "sig", "phi", "gf", "diag", "s_int", "g_int",
+)  # fmt: skip
 
 D_PRESSURE, D_SHEAR_RATE, D_INERTIAL, D_DRIVER, D_SPEED, D_NU = range(6)
 
@@ -50,6 +54,7 @@ class State:
     eps: np.ndarray
     sig: np.ndarray
     phi: np.ndarray
+    gf: np.ndarray
     diag: np.ndarray
     s_int: np.ndarray
     g_int: np.ndarray
@@ -92,6 +97,7 @@ class State:
             eps=np.ascontiguousarray(eps, dtype=np.float64),
             sig=np.zeros((4, n)),
             phi=np.ascontiguousarray(phi, dtype=np.float64),
+            gf=np.zeros(n),
             diag=np.zeros((6, n)),
             s_int=np.zeros(n),
             g_int=np.zeros(n),
@@ -116,6 +122,8 @@ class State:
             "flags": np.zeros(n, dtype=np.int8),
             "x_old": np.zeros((2, n)),
             "lg": np.zeros((4, n)),
+            # nodal fields of the fluidity update (mpm.fluidity)
+            "fw": fluidity_work(nx, ny),
         }
         if self.cg is not None:
             from .segregation import allocate_work

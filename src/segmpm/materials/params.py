@@ -12,10 +12,15 @@ from ..config import Config
 
 KIND_LINEAR_ELASTIC = 0
 KIND_FEI2016 = 1
+#: Jiang–Liu elasticity (the Fei et al. energy) with the nonlocal granular fluidity flow rule
+#: γ̇ᵖ = g μ instead of the yield cap and σ^d (``material.rheology = "nonlocal"``, docs/model.md)
+KIND_FEI2016_NGF = 2
 
 DRIVER_A = 0  # S = μ_d(I) p_e   (physics.md §2.4, default)
 DRIVER_B = 1  # S = κ_T ρ (γ̇ d̄)²
 DRIVER_C = 2  # S = −σ^d_yy (literal seed; ≈ 0 in steady shear, diagnostic)
+DRIVER_P = 3  # S = p_e (the pressure: the Liu–Singh–Henann closure's pressure-gradient driver)
+DRIVER_G = 4  # S = κ_g ρ (g d̄)² (kinetic stress from the fluidity, Zhang & Kamrin 2017)
 
 (
     M_KIND,
@@ -42,15 +47,37 @@ DRIVER_C = 2  # S = −σ^d_yy (literal seed; ≈ 0 in steady shear, diagnostic)
     M_CAPR,  # r_c / q_φ
     M_IRHO0,  # 1 / (f ρ_s)
     M_CW,  # 3.75 A + 2 C: ρ c² = (3.75 A + 2 C) √I₁
+    # nonlocal granular fluidity (KIND_FEI2016_NGF)
+    M_MU_S,  # μ_s, static friction of the NGF
+    M_NGF_B,  # b of g_loc = √(p/ρ_s d̄²)(μ − μ_s)/(b μ), i.e. μ = μ_s + b I locally
+    M_NGF_A,  # A, nonlocal amplitude (cooperativity length ξ = A d̄/√|μ − μ_s|)
+    M_T0,  # t₀, fluidity time scale, s
+    M_KAPPA_G,  # κ_g of driver G (= 1/F² of δv = g d̄ / F)
+    M_FLU_DT,  # target interval of the fluidity update (mpm.fluidity), s
     M_NSLOTS,
-) = range(24)
+) = range(30)
+
+
+DRIVER_CODES = {"A": DRIVER_A, "B": DRIVER_B, "C": DRIVER_C, "P": DRIVER_P, "G": DRIVER_G}
+
+#: closures that fix their own driver S (the ``segregation.driver`` key is not used by them)
+CLOSURE_DRIVERS = {"liu_henann": "P", "hill_tan_fluidity": "G"}
+
+
+def effective_driver(cfg: Config) -> str:
+    """The driver S the engine computes: the closure's own (``CLOSURE_DRIVERS``) or
+    ``segregation.driver``."""
+    return CLOSURE_DRIVERS.get(cfg.segregation.model, cfg.segregation.driver)
 
 
 def pack_material(cfg: Config) -> np.ndarray:
     """Build the material record from a configuration."""
     m = cfg.material
     prm = np.zeros(M_NSLOTS, dtype=np.float64)
-    prm[M_KIND] = KIND_FEI2016 if m.model == "fei2016" else KIND_LINEAR_ELASTIC
+    if m.model == "fei2016":
+        prm[M_KIND] = KIND_FEI2016_NGF if m.rheology == "nonlocal" else KIND_FEI2016
+    else:
+        prm[M_KIND] = KIND_LINEAR_ELASTIC
     prm[M_RHO_S] = m.grain_density
     prm[M_F] = m.solid_fraction
     A = m.A * m.stiffness_scale
@@ -66,12 +93,18 @@ def pack_material(cfg: Config) -> np.ndarray:
     prm[M_H] = cfg.grid.cell_size
     prm[M_DS] = cfg.mixture.d_small
     prm[M_DL] = cfg.mixture.d_large
-    prm[M_DRIVER] = {"A": DRIVER_A, "B": DRIVER_B, "C": DRIVER_C}[cfg.segregation.driver]
+    prm[M_DRIVER] = DRIVER_CODES[effective_driver(cfg)]
     prm[M_KAPPA] = cfg.segregation.kappa
     prm[M_KAPPA_T] = cfg.segregation.kappa_T
     prm[M_CAPR] = m.cap_ratio / m.q_phi
     prm[M_IRHO0] = 1.0 / (m.solid_fraction * m.grain_density)
     prm[M_CW] = 3.75 * A + 2.0 * prm[M_C]
+    prm[M_MU_S] = m.static_friction
+    prm[M_NGF_B] = m.rate_sensitivity
+    prm[M_NGF_A] = m.nonlocal_amplitude
+    prm[M_T0] = m.fluidity_time
+    prm[M_FLU_DT] = m.fluidity_dt if m.fluidity_dt > 0 else 0.25 * m.fluidity_time
+    prm[M_KAPPA_G] = cfg.segregation.kappa_g
     E, nu = m.youngs_modulus, m.poisson_ratio
     prm[M_LAMBDA] = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
     prm[M_MU] = E / (2.0 * (1.0 + nu))

@@ -55,8 +55,10 @@ TRANSFER_AFLIP = 2  # APIC affine transfer with a FLIP velocity update (Fei et a
     S_NUMAX,  # max kinematic viscosity after the last step, m²/s
     S_DT,  # last time step, s
     S_NSEG,  # concentration steps taken
+    S_TFLU,  # time accumulated towards the next fluidity update (nonlocal rheology), s
+    S_NFLU,  # fluidity updates taken
     S_NSLOTS,
-) = range(8)
+) = range(10)
 
 # status returned by advance
 ST_OK = 0

@@ -22,10 +22,12 @@ from ..materials import (
     VAR_ELASTIC,
     VAR_FEI_LINEAR,
     VAR_FEI_POWER,
+    VAR_NGF,
     material_update,
     material_update_var,
     material_variant,
 )
+from ..materials.params import M_FLU_DT
 from ..segregation.closures import P_DT_TARGET, P_MODEL
 from ..segregation.grid import concentration_step
 from .params import (
@@ -47,10 +49,12 @@ from .params import (
     G_X0,
     G_Y0,
     S_DT,
+    S_NFLU,
     S_NSEG,
     S_NUMAX,
     S_SMAX,
     S_STEP,
+    S_TFLU,
     S_TIME,
     S_TSEG,
     ST_DT_COLLAPSE,
@@ -60,6 +64,7 @@ from .params import (
     TRANSFER_AFLIP,
     TRANSFER_FLIP,
 )
+from .fluidity import fluidity_step
 from .transfer import (
     counting_sort,
     fold_images,
@@ -171,7 +176,8 @@ B_GDOT, B_I, B_S, B_SPEED, B_NU, B_BAD, B_ROWS = range(7)
 
 
 @njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
-def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg, full, threads):
+def update_stress(x, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp, dt, flags, lg, full,
+                  threads):  # fmt: skip
     """The material update of every point from ``lg`` (L of ``update_points``), the subcycle
     integrals, and the step check fused into the same parallel loop.
 
@@ -181,7 +187,8 @@ def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg,
     ``flags[p]`` from ``update_points`` (position outside the grid or not finite). Returns
     (status, first failing point, max c + |v|, max ν); the failing point is the first in index
     order (a min-reduction), so the diagnostic does not depend on the thread count.
-    ``threads``: the number of threads, which only sets the block size.
+    ``threads``: the number of threads, which only sets the block size. ``gf``: the fluidity of
+    the points (read by the nonlocal variant).
 
     Blocks of up to ``BLOCK`` points run in parallel. In a block, a loop without reductions or
     calls (``_stress_block``, vectorised: four points per AVX2 instruction) updates the state
@@ -201,13 +208,16 @@ def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg,
         m = min(size, n - lo)
         buf = np.empty((B_ROWS, size))
         if var == VAR_FEI_LINEAR:
-            _stress_block(VAR_FEI_LINEAR, lo, m, buf, v, J, eps, sig, phi, diag, s_int, g_int,
+            _stress_block(VAR_FEI_LINEAR, lo, m, buf, v, J, eps, sig, phi, gf, diag, s_int,
+                          g_int, mp, dt, flags, lg)  # fmt: skip
+        elif var == VAR_NGF:
+            _stress_block(VAR_NGF, lo, m, buf, v, J, eps, sig, phi, gf, diag, s_int, g_int,
                           mp, dt, flags, lg)  # fmt: skip
         elif var == VAR_FEI_POWER:
-            _stress_block(VAR_FEI_POWER, lo, m, buf, v, J, eps, sig, phi, diag, s_int, g_int,
-                          mp, dt, flags, lg)  # fmt: skip
+            _stress_block(VAR_FEI_POWER, lo, m, buf, v, J, eps, sig, phi, gf, diag, s_int,
+                          g_int, mp, dt, flags, lg)  # fmt: skip
         else:
-            _stress_block(VAR_ELASTIC, lo, m, buf, v, J, eps, sig, phi, diag, s_int, g_int,
+            _stress_block(VAR_ELASTIC, lo, m, buf, v, J, eps, sig, phi, gf, diag, s_int, g_int,
                           mp, dt, flags, lg)  # fmt: skip
         bs, bn, bb = _reduce_block(lo, m, n, buf, diag, full)
         smax = max(smax, bs)
@@ -217,7 +227,8 @@ def update_stress(x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg,
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _stress_block(var, lo, m, buf, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg):
+def _stress_block(var, lo, m, buf, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp, dt, flags,
+                  lg):  # fmt: skip
     """The material update of points lo … lo + m − 1 (variant ``var``, a constant): state and
     pressure stored, the diagnostics and the step check (1.0 if failed) into ``buf``. Unsigned
     indices: Numba then emits no negative-index wrap, and the loop vectorises."""
@@ -226,7 +237,7 @@ def _stress_block(var, lo, m, buf, v, J, eps, sig, phi, diag, s_int, g_int, mp, 
         p = base + u
         Jp = J[p]
         r = material_update_var(var, mp, lg[0, p], lg[1, p], lg[2, p], lg[3, p], dt, eps[0, p],
-                                eps[1, p], eps[2, p], eps[3, p], Jp, phi[p])  # fmt: skip
+                                eps[1, p], eps[2, p], eps[3, p], Jp, phi[p], gf[p])  # fmt: skip
         speed = _store_state(p, r, dt, v, eps, sig, diag, s_int, g_int)
         ok = _values_ok(flags[p], speed, r[4] + r[5] + r[6] + r[7], Jp)
         buf[B_GDOT, u] = r[9]
@@ -261,7 +272,7 @@ def _reduce_block(lo, m, n, buf, diag, full):
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def update_stress_musl(x, v, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, dt, x_old):
+def update_stress_musl(x, v, J, eps, sig, phi, gf, diag, s_int, g_int, gp, mp, gv, dt, x_old):
     """MUSL stress update from the remapped nodal velocities, evaluated at the old positions."""
     n = x.shape[1]
     ih = 1.0 / gp[G_H]
@@ -273,15 +284,15 @@ def update_stress_musl(x, v, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, d
     periodic = gp[G_PERIODIC] != 0.0
     for p in prange(n):
         r = gather(x_old[0, p], x_old[1, p], g, ih, x0, y0, nx, ny, periodic)
-        _stress(p, r[6], r[7], r[8], r[9], dt, v, J, eps, sig, phi, diag, s_int, g_int, mp)
+        _stress(p, r[6], r[7], r[8], r[9], dt, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _stress(p, l00, l01, l10, l11, dt, v, J, eps, sig, phi, diag, s_int, g_int, mp):
+def _stress(p, l00, l01, l10, l11, dt, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp):
     Jn = _advance_J(J[p], l00, l01, l10, l11, dt)
     J[p] = Jn
     r = material_update(
-        mp, l00, l01, l10, l11, dt, eps[0, p], eps[1, p], eps[2, p], eps[3, p], Jn, phi[p]
+        mp, l00, l01, l10, l11, dt, eps[0, p], eps[1, p], eps[2, p], eps[3, p], Jn, phi[p], gf[p]
     )
     _store(p, r, dt, v, eps, sig, diag, s_int, g_int)
 
@@ -324,13 +335,13 @@ def _store_diag(p, r, speed, diag):
 
 
 @njit(cache=True, error_model="numpy")
-def prime(J, eps, sig, phi, diag, mp, v):
+def prime(J, eps, sig, phi, gf, diag, mp, v):
     """Stress, diagnostics and wave speeds of the initial state (no deformation, Δt = 0)."""
     n = J.shape[0]
     s = np.zeros(n)
     g = np.zeros(n)
     for p in range(n):
-        _stress(p, 0.0, 0.0, 0.0, 0.0, 0.0, v, J, eps, sig, phi, diag, s, g, mp)
+        _stress(p, 0.0, 0.0, 0.0, 0.0, 0.0, v, J, eps, sig, phi, gf, diag, s, g, mp)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -381,14 +392,17 @@ def _check(x, v, J, sig, diag, flags):
 
 @njit(cache=True, error_model="numpy")
 def advance(
-    x, v, C, mass, vol0, J, eps, sig, phi, diag, s_int, g_int,
-    gp, mp, sc, grid, gv, strip_start, cursor, order, bounds, flags, x_old, lg,
+    x, v, C, mass, vol0, J, eps, sig, phi, gf, diag, s_int, g_int,
+    gp, mp, sc, grid, gv, strip_start, cursor, order, bounds, flags, x_old, lg, fw,
     seg_prm, cg, seg_work, t_stop, max_steps,
 ):  # fmt: skip
     """Advance the state to ``t_stop`` (exactly) or by ``max_steps`` steps, whichever comes first.
 
     Every time the accumulated time reaches the segregation subcycle (``seg_prm[P_DT_TARGET]``),
     one concentration step (seed Fig. 1 i–k) runs on the extra grid with the time-averaged driver.
+    With the nonlocal rheology, every ``mp[M_FLU_DT]`` of accumulated time the fluidity ``gf`` is
+    advanced (``mpm.fluidity.fluidity_step``: nonlocal diffusion on the grid, local relaxation
+    at the points; work array ``fw``).
 
     ``sc`` holds the scalar state (time, step counter, last Δt, …; see mpm.params ``S_*``).
     Returns (status, point index, steps taken); status ST_OK or the reason the loop stopped.
@@ -401,6 +415,7 @@ def advance(
     flip = gp[G_TRANSFER] == TRANSFER_FLIP
     nstrips = strip_start.shape[0] - 1
     images = image_pairs(gp, grid.shape[0], grid.shape[1])
+    nonlocal_on = material_variant(mp) == VAR_NGF
     steps = 0
     while steps < max_steps and sc[S_TIME] < t_stop:
         t = sc[S_TIME]
@@ -441,11 +456,12 @@ def advance(
             fold_images(grid, images, 0.0, 0.0)
             momentum_to_velocity(gp, grid, gv)
             mirror_images(gv, images)
-            update_stress_musl(x, v, J, eps, sig, phi, diag, s_int, g_int, gp, mp, gv, dt, x_old)
+            update_stress_musl(x, v, J, eps, sig, phi, gf, diag, s_int, g_int, gp, mp, gv, dt,
+                               x_old)  # fmt: skip
             status, idx, smax, numax = _check(x, v, J, sig, diag, flags)
         else:
             status, idx, smax, numax = update_stress(
-                x, v, J, eps, sig, phi, diag, s_int, g_int, mp, dt, flags, lg, last,
+                x, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp, dt, flags, lg, last,
                 bounds.shape[0] - 1,
             )  # fmt: skip
 
@@ -458,6 +474,12 @@ def advance(
         sc[S_NUMAX] = numax
         if status != ST_OK:
             return status, idx, steps
+        if nonlocal_on:
+            sc[S_TFLU] += dt
+            if sc[S_TFLU] >= mp[M_FLU_DT] * (1.0 - 1e-12):
+                fluidity_step(x, mass, phi, sig, diag[0], gf, gp, mp, fw, sc[S_TFLU])
+                sc[S_TFLU] = 0.0
+                sc[S_NFLU] += 1.0
         if sc[S_TSEG] >= seg_prm[P_DT_TARGET] * (1.0 - 1e-12):
             if seg_prm[P_MODEL] != 0.0:
                 concentration_step(x[0], x[1], vol0, phi, s_int, g_int, sc[S_TSEG], cg, seg_prm,

@@ -12,9 +12,9 @@ import math
 import numpy as np
 
 from ..config import Config
-from ..materials import KIND_FEI2016, pack_material
+from ..materials import KIND_LINEAR_ELASTIC, pack_material
 from ..materials.fei2016 import oedometric_strain
-from ..materials.params import M_A, M_C, M_LAMBDA, M_MU
+from ..materials.params import M_A, M_C, M_KIND, M_LAMBDA, M_MU
 from ..mpm.params import (
     BC_CODES,
     BC_NOSLIP,
@@ -130,7 +130,7 @@ def _initial_strain(cfg: Config, mp: np.ndarray, p_yy: np.ndarray):
     J = np.ones(n)
     if cfg.material.initial_state != "geostatic":
         return eps, J
-    if mp[0] == KIND_FEI2016:
+    if mp[M_KIND] != KIND_LINEAR_ELASTIC:  # the Jiang–Liu energy (local or nonlocal flow rule)
         e = oedometric_strain(p_yy, mp[M_A], mp[M_C])
         J = np.exp(-e)  # I₁ = −ln J = e
     else:
@@ -160,7 +160,7 @@ def wave_speed_floor(cfg: Config, mp: np.ndarray, p_ref: float) -> float:
     P-wave speed.
     """
     rho = cfg.material.solid_fraction * cfg.material.grain_density
-    if mp[0] == KIND_FEI2016:
+    if mp[M_KIND] != KIND_LINEAR_ELASTIC:
         I1 = float(oedometric_strain(np.array([p_ref]), mp[M_A], mp[M_C])[0])
         return math.sqrt((3.75 * mp[M_A] + 2.0 * mp[M_C]) * math.sqrt(I1) / rho)
     return math.sqrt((mp[M_LAMBDA] + 2.0 * mp[M_MU]) / rho)

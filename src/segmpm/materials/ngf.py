@@ -1,0 +1,352 @@
+"""Nonlocal granular fluidity (NGF) on the Jiang–Liu elasticity (``material.rheology =
+"nonlocal"``; docs/model.md, "Nonlocal rheology").
+
+Plastic flow follows the fluidity flow rule of Kamrin & Koval (2012) and Henann & Kamrin (2013):
+the equivalent plastic shear rate is γ̇ᵖ = g μ, with μ = τ̄/p the stress ratio
+(τ̄ = √(½ s:s)) and g the granular fluidity, a field that obeys the dynamic equation of Kamrin &
+Henann (2015)
+
+    t₀ ∂g/∂t = A² d̄² ∇²g − (μ_s − μ) g − b μ √(ρ_s d̄²/p) g².
+
+Its homogeneous steady state is g_loc = √(p/ρ_s d̄²) (μ − μ_s)/(b μ) (μ > μ_s, else 0): locally
+μ = μ_s + b I, the linear μ(I) of the local model with μ_s for q_c and b for a.
+
+Per material point and step (``ngf_update_i1``): the objective elastic predictor of the Fei model,
+then the implicit (unconditionally stable) return of the deviatoric elastic strain,
+ε⁰ ← ε⁰_tr p/(p + G Δt g) (that is τ = τ_tr p/(p + G Δt g), G = C√I₁/2 the shear modulus), then the
+Jiang–Liu convexity guard √I₂ ≤ r_c I₁/q_φ and the stress. There is no σ^d: the rate dependence is
+the fluidity's. The fluidity itself is advanced between steps by ``mpm.fluidity``: nonlocal
+diffusion on the MPM grid, then ``relax_local`` at the points (the exact solution of the local
+part for coefficients frozen over the interval). g = 0 where the material is disconnected
+(gas, p ≤ 0).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .._fmath import fsqrt
+from .fei2016 import THIRD, deviatoric_rate, jaumann_predictor, jaumann_predictor_np
+from .params import (
+    DRIVER_A,
+    DRIVER_B,
+    DRIVER_C,
+    DRIVER_G,
+    DRIVER_P,
+    M_A,
+    M_C,
+    M_CAPR,
+    M_CW,
+    M_DL,
+    M_DRIVER,
+    M_DS,
+    M_F,
+    M_H,
+    M_IRHO0,
+    M_KAPPA,
+    M_KAPPA_G,
+    M_KAPPA_T,
+    M_MU_S,
+    M_NGF_B,
+    M_QPHI,
+    M_RC,
+    M_RHO_S,
+    M_T0,
+    M_ZETA,
+)
+
+#: the fluidity a point with μ > μ_s and g = 0 starts from, as a fraction of its g_loc: g = 0 is a
+#: (unstable) fixed point of the local equation, so a layer at rest would otherwise never flow
+SEED_FRACTION = 1.0e-3
+
+
+#: Newton iterations of ``return_factor`` (from the explicit estimate; 4 reach round-off for
+#: trial states up to 1.5 times past the convexity limit and G Δt g/p up to 10³)
+RETURN_ITERATIONS = 4
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def return_factor(a0, a2, k):
+    """The factor f ∈ (0, 1] of the implicit return ε⁰ = f ε⁰_tr of the flow rule γ̇ᵖ = g μ:
+    f (p(f) + G Δt g) = p(f), with the Jiang–Liu pressure of the returned state
+    p(f) = a0 + a2 f² (a0 = 2.5 A I₁^{3/2}, a2 = ½ C I₂,tr/√I₁, k = G Δt g). It is τ = τ_tr
+    p/(p + G Δt g) with p the pressure of the returned state, so that a steady shear gives
+    γ̇ = g τ/p exactly. The cubic a2 f²(f − 1) + (a0 + k) f − a0 = 0 has one root in (0, 1]
+    (it increases there: a2 ≤ a0 on the convex side); Newton from f = p_tr/(p_tr + k), a fixed
+    number of iterations, so the loop stays branch-free."""
+    ptr = a0 + a2
+    f = ptr / (ptr + k)
+    for _ in range(RETURN_ITERATIONS):
+        r = a2 * f * f * (f - 1.0) + (a0 + k) * f - a0
+        d = a2 * f * (3.0 * f - 2.0) + a0 + k
+        f -= r / d
+    return f
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def ngf_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, gf):
+    """Stress update of one point with the fluidity flow rule; the contract of
+    :func:`segmpm.materials.fei2016.fei_update` (new elastic strain, stress, p_e, γ̇, I, S, c, ν)
+    with the fluidity ``gf`` (1/s) of the point as an extra input. ν = 0 (no viscous stress) unless
+    a bulk viscosity is set. Branch-free but for the driver (uniform over a loop), like
+    ``fei_update_i1``, so that the material pass vectorises."""
+    A = prm[M_A]
+    C = prm[M_C]
+    rho_s = prm[M_RHO_S]
+    rho = prm[M_F] * rho_s / J
+    dpxx, dpyy, dpzz, dxy, trd, gdot = deviatoric_rate(l00, l01, l10, l11)
+
+    exx, eyy, exy, ezz = jaumann_predictor(exx, eyy, exy, ezz, l00, l01, l10, l11, dt)
+    t3 = (exx + eyy + ezz) * THIRD
+    e0xx = exx - t3
+    e0yy = eyy - t3
+    e0zz = ezz - t3
+    e0xy = exy
+    I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz + 2.0 * e0xy * e0xy)
+    sq = fsqrt(I1)
+    isq = 1.0 / sq
+    f = return_factor(2.5 * A * I1 * sq, 0.5 * C * I2 * isq, 0.5 * C * sq * dt * gf)
+    e0xx *= f
+    e0yy *= f
+    e0zz *= f
+    e0xy *= f
+    I2 *= f * f
+    # convexity guard of the energy (not the yield criterion here: q_φ exceeds the flow's μ)
+    cap = prm[M_CAPR] * I1
+    over = I2 > cap * cap
+    s = cap / fsqrt(I2) if over else 1.0
+    e0xx *= s
+    e0yy *= s
+    e0zz *= s
+    e0xy *= s
+    I2 = cap * cap if over else I2
+    third = I1 * THIRD
+
+    pe = 2.5 * A * I1 * sq + 0.5 * C * I2 * isq
+    G2 = C * sq  # 2G
+    dbar = phi * prm[M_DS] + (1.0 - phi) * prm[M_DL]
+    spe = fsqrt(rho_s * pe)
+    inertial = gdot * dbar * rho_s / spe if pe > 0.0 else 0.0
+    c = fsqrt(prm[M_CW] * sq * J * prm[M_IRHO0])
+    zeta = prm[M_ZETA] * rho * c * prm[M_H]
+    vol = zeta * trd
+    sxx = -pe + G2 * e0xx + vol
+    syy = -pe + G2 * e0yy + vol
+    sxy = G2 * e0xy
+    szz = -pe + G2 * e0zz + vol
+
+    driver = int(prm[M_DRIVER])
+    if driver == DRIVER_A:
+        S = prm[M_NGF_B] * inertial * pe  # the rate-dependent part b I p of the local law
+    elif driver == DRIVER_B:
+        S = prm[M_KAPPA_T] * rho * (gdot * dbar) ** 2
+    elif driver == DRIVER_C:
+        S = 0.0  # no σ^d
+    elif driver == DRIVER_P:
+        S = pe
+    else:
+        S = prm[M_KAPPA_G] * rho * (gf * dbar) ** 2
+    S *= prm[M_KAPPA]
+    nu = zeta * J * prm[M_IRHO0]
+    if I1 <= 0.0:
+        v = -third
+        return v, v, 0.0, v, 0.0, 0.0, 0.0, 0.0, 0.0, gdot, 0.0, 0.0, 0.0, 0.0
+    return (
+        e0xx - third,
+        e0yy - third,
+        e0xy,
+        e0zz - third,
+        sxx,
+        syy,
+        sxy,
+        szz,
+        pe,
+        gdot,
+        inertial,
+        S,
+        c,
+        nu,
+    )
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def stress_ratio(sxx, syy, sxy, szz, p):
+    """μ = τ̄/p with τ̄ = √(½ s:s) of the deviator s of σ (plane strain, σ_zz included); 0 if
+    p ≤ 0."""
+    m = (sxx + syy + szz) * THIRD
+    a = sxx - m
+    b = syy - m
+    c = szz - m
+    tau = math.sqrt(0.5 * (a * a + b * b + c * c) + sxy * sxy)
+    return tau / p if p > 0.0 else 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def local_fluidity(mu, p, dbar, rho_s, mu_s, b):
+    """g_loc = √(p/(ρ_s d̄²)) (μ − μ_s)/(b μ) for μ > μ_s and p > 0, else 0 (1/s)."""
+    if not (p > 0.0 and mu > mu_s):
+        return 0.0
+    return math.sqrt(p / rho_s) / dbar * (mu - mu_s) / (b * mu)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def relax_local(g, mu, p, dbar, dt, prm):
+    """The local part t₀ dg/dt = (μ − μ_s) g − b μ √(ρ_s d̄²/p) g² over ``dt``, exactly for μ and
+    p frozen (a logistic equation: g → g_loc for μ > μ_s, g → 0 otherwise, monotonically and
+    without a step limit). Disconnected material (p ≤ 0) has g = 0. A point with μ > μ_s and
+    g below ``SEED_FRACTION`` g_loc starts from that."""
+    if not (p > 0.0):
+        return 0.0
+    if g != g:
+        return g  # NaN propagates to the engine's check
+    rho_s = prm[M_RHO_S]
+    mu_s = prm[M_MU_S]
+    t0 = prm[M_T0]
+    k = prm[M_NGF_B] * mu * dbar * math.sqrt(rho_s / p) / t0
+    lam = (mu - mu_s) / t0
+    if g < 0.0:
+        g = 0.0
+    if lam > 0.0:
+        gl = lam / k
+        if g < SEED_FRACTION * gl:
+            g = SEED_FRACTION * gl
+        # g(t) = 1 / (e^{−λt}/g + k (1 − e^{−λt})/λ): no overflow for λ t ≫ 1
+        em = math.exp(-lam * dt)
+        return 1.0 / (em / g + (1.0 - em) / gl)
+    if g == 0.0:
+        return 0.0
+    x = lam * dt
+    if x < -1e-8:
+        e = math.exp(x)
+        return g * e / (1.0 + k * g * math.expm1(x) / lam)
+    return g / (1.0 + k * g * dt)
+
+
+# ---------------------------------------------------------------------------------------------
+# NumPy reference
+
+
+def ngf_update_np(prm, L, dt, eps, J, phi, gf):
+    """NumPy reference of :func:`ngf_update_i1` for arrays of points (I₁ = −ln J).
+
+    L (n, 2, 2), eps (n, 4), J, phi, gf (n,). Returns (eps_new, sig, p, gdot, I, S, c, nu).
+    """
+    L = np.asarray(L, dtype=np.float64)
+    eps = np.array(eps, dtype=np.float64)
+    gf = np.asarray(gf, dtype=np.float64)
+    A, C, rho_s = prm[M_A], prm[M_C], prm[M_RHO_S]
+    rho = prm[M_F] * rho_s / J
+    d, E2 = jaumann_predictor_np(L, dt, eps)
+    E3 = np.zeros((len(J), 3, 3))
+    E3[:, :2, :2] = E2
+    E3[:, 2, 2] = eps[:, 3]
+    D3 = np.zeros((len(J), 3, 3))
+    D3[:, :2, :2] = d
+    eye = np.eye(3)
+    Dp = D3 - np.trace(D3, axis1=1, axis2=2)[:, None, None] / 3.0 * eye
+    gdot = np.sqrt(2.0 * np.einsum("nij,nij->n", Dp, Dp))
+    I1 = -np.log(J)
+    gas = I1 <= 0
+    I1p = np.where(gas, 1.0, I1)
+    sq = np.sqrt(I1p)
+    E0 = E3 - np.trace(E3, axis1=1, axis2=2)[:, None, None] / 3.0 * eye
+    I2 = 0.5 * np.einsum("nij,nij->n", E0, E0)
+    factor = return_factor_np(2.5 * A * I1p**1.5, 0.5 * C * I2 / sq, 0.5 * C * sq * dt * gf)
+    E0 = E0 * factor[:, None, None]
+    I2 = I2 * factor**2
+    cap = prm[M_RC] * I1p / prm[M_QPHI]
+    scale = np.where(I2 > cap**2, cap / np.sqrt(np.where(I2 > 0, I2, 1.0)), 1.0)
+    E0 = E0 * scale[:, None, None]
+    E0[gas] = 0.0
+    I2 = np.where(gas, 0.0, np.minimum(I2, cap**2))
+    Enew = E0 - (I1 / 3.0)[:, None, None] * eye
+    pe = np.where(gas, 0.0, 2.5 * A * I1p**1.5 + 0.5 * C * I2 / sq)
+    dbar = phi * prm[M_DS] + (1.0 - phi) * prm[M_DL]
+    c = np.where(gas, 0.0, np.sqrt((3.75 * A + 2.0 * C) * sq / rho))
+    zeta = prm[M_ZETA] * rho * c * prm[M_H]
+    trd = np.trace(D3, axis1=1, axis2=2)
+    S3 = (
+        -pe[:, None, None] * eye
+        + (C * sq)[:, None, None] * E0
+        + (zeta * trd)[:, None, None] * eye
+    )
+    S3[gas] = 0.0
+    inertial = np.where(pe > 0, gdot * dbar / np.sqrt(np.where(pe > 0, pe, 1.0) / rho_s), 0.0)
+    drv = int(prm[M_DRIVER])
+    if drv == DRIVER_A:
+        S = prm[M_NGF_B] * inertial * pe
+    elif drv == DRIVER_B:
+        S = prm[M_KAPPA_T] * rho * (gdot * dbar) ** 2
+    elif drv == DRIVER_C:
+        S = np.zeros_like(pe)
+    elif drv == DRIVER_P:
+        S = pe.copy()
+    else:
+        S = prm[M_KAPPA_G] * rho * (gf * dbar) ** 2
+    S = np.where(gas, 0.0, S * prm[M_KAPPA])
+    nu = np.where(gas, 0.0, zeta / rho)
+    eps_new = np.stack([Enew[:, 0, 0], Enew[:, 1, 1], Enew[:, 0, 1], Enew[:, 2, 2]], axis=1)
+    sig = np.stack([S3[:, 0, 0], S3[:, 1, 1], S3[:, 0, 1], S3[:, 2, 2]], axis=1)
+    return eps_new, sig, pe, gdot, np.where(gas, 0.0, inertial), S, c, nu
+
+
+def return_factor_np(a0, a2, k):
+    """NumPy :func:`return_factor`: the root in (0, 1] of a2 f²(f − 1) + (a0 + k) f − a0 by
+    bisection to round-off (independent of the Newton iteration of the compiled kernel)."""
+    a0, a2, k = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in (a0, a2, k)))
+    lo = np.zeros(a0.shape)
+    hi = np.ones(a0.shape)
+    for _ in range(64):
+        mid = 0.5 * (lo + hi)
+        r = a2 * mid * mid * (mid - 1.0) + (a0 + k) * mid - a0
+        neg = r < 0
+        lo = np.where(neg, mid, lo)
+        hi = np.where(neg, hi, mid)
+    return 0.5 * (lo + hi)
+
+
+def stress_ratio_np(sig: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """NumPy :func:`stress_ratio`: sig (4, n) as (xx, yy, xy, zz), p (n,)."""
+    sxx, syy, sxy, szz = sig
+    m = (sxx + syy + szz) / 3.0
+    tau = np.sqrt(0.5 * ((sxx - m) ** 2 + (syy - m) ** 2 + (szz - m) ** 2) + sxy**2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(p > 0, tau / np.where(p > 0, p, 1.0), 0.0)
+
+
+def local_fluidity_np(mu, p, dbar, rho_s, mu_s, b):
+    """NumPy :func:`local_fluidity`."""
+    mu, p, dbar = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (mu, p, dbar)))
+    ok = (p > 0) & (mu > mu_s)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = np.sqrt(np.where(ok, p, 0.0) / rho_s) / dbar * (mu - mu_s) / (b * np.where(ok, mu, 1))
+    return np.where(ok, g, 0.0)
+
+
+def relax_local_np(g, mu, p, dbar, dt, prm):
+    """NumPy reference of :func:`relax_local`: the same logistic solution, element-wise."""
+    g = np.array(g, dtype=np.float64)
+    mu, p, dbar = (np.broadcast_to(np.asarray(a, dtype=np.float64), g.shape) for a in (mu, p, dbar))
+    out = np.zeros_like(g)
+    t0 = prm[M_T0]
+    for i in np.ndindex(g.shape):
+        if not p[i] > 0:
+            continue
+        k = prm[M_NGF_B] * mu[i] * dbar[i] * np.sqrt(prm[M_RHO_S] / p[i]) / t0
+        lam = (mu[i] - prm[M_MU_S]) / t0
+        gi = max(g[i], 0.0)
+        if lam > 0:
+            gl = lam / k
+            gi = max(gi, SEED_FRACTION * gl)
+            em = np.exp(-lam * dt)
+            out[i] = 1.0 / (em / gi + (1.0 - em) / gl)
+        elif gi == 0.0:
+            out[i] = 0.0
+        elif lam * dt < -1e-8:
+            out[i] = gi * np.exp(lam * dt) / (1.0 + k * gi * np.expm1(lam * dt) / lam)
+        else:
+            out[i] = gi / (1.0 + k * gi * dt)
+    return out
