@@ -30,6 +30,7 @@ from .mpm.params import (
     G_NY,
     G_Y0,
     S_DT,
+    S_NFLU,
     S_NSEG,
     S_NUMAX,
     S_SMAX,
@@ -225,7 +226,8 @@ class Simulation:
         cfg = self.config
         length = float(self.state.gp[G_LX]) if self.state.gp[G_LX] > 0 else None
         return depth_profiles(self.state, self.edges, cfg.material.solid_fraction,
-                              cfg.material.grain_density, length)  # fmt: skip
+                              cfg.material.grain_density, length,
+                              cfg.material.rheology == "nonlocal")  # fmt: skip
 
     # --------------------------------------------------------------------------- run
     def _attrs(self) -> dict[str, str]:
@@ -340,7 +342,7 @@ class Simulation:
     def _output(self, t: float, writer, vtk) -> None:
         writer.add(t, self.profiles(), self.segregation_diagnostics())
         if self.config.output.fields:
-            vtk.add(t, self.state)
+            vtk.add(t, self.state, self.config.material.rheology == "nonlocal")
 
     def _write_runinfo(self, status: str, failure: dict[str, Any] | None) -> dict[str, Any]:
         n = self.state.n
@@ -360,6 +362,8 @@ class Simulation:
             "conservation": self.conservation(),
             "segregation": self.segregation_diagnostics(),
             "concentration_steps": int(self.state.sc[S_NSEG]),
+            "fluidity_updates": int(self.state.sc[S_NFLU]),
+            "rheology": self.config.material.rheology,
         }
         if failure is not None:
             info["failure"] = failure

@@ -23,6 +23,8 @@ PROFILE_VARIABLES = {
     "segregation_driver": ("Pa", "driving stress S of the segregation flux"),
     "shear_stress": ("Pa", "shear stress σ_xy"),
     "normal_stress": ("Pa", "normal stress −σ_yy (compression positive)"),
+    "stress_ratio": ("1", "stress ratio μ = sqrt(½ s:s)/p_e"),
+    "fluidity": ("s-1", "granular fluidity g: the nonlocal state g, or γ̇/μ of a local run"),
 }
 
 #: scalar time series written beside the profiles (segregation diagnostics, docs/segregation.md)
@@ -40,9 +42,23 @@ def bin_edges(top: float, width: float) -> np.ndarray:
     return np.arange(n + 1) * width
 
 
+def point_fluidity(st: State, nonlocal_: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(μ, g) of every point: the stress ratio and the fluidity (the state g of the nonlocal
+    rheology, else γ̇/μ, the measure a DEM gives)."""
+    from ..materials.ngf import stress_ratio_np
+
+    mu = stress_ratio_np(st.sig, st.diag[D_PRESSURE])
+    if nonlocal_:
+        return mu, st.gf.copy()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = np.where(mu > 0, st.diag[D_SHEAR_RATE] / np.where(mu > 0, mu, 1.0), 0.0)
+    return mu, g
+
+
 def depth_profiles(st: State, edges: np.ndarray, solid_density: float, grain_density: float,
-                   length: float | None) -> dict[str, np.ndarray]:  # fmt: skip
-    """Profiles on the bins ``edges`` of a state; ``length`` is L_x for the solid fraction."""
+                   length: float | None, nonlocal_: bool = False) -> dict[str, np.ndarray]:  # fmt: skip
+    """Profiles on the bins ``edges`` of a state; ``length`` is L_x for the solid fraction;
+    ``nonlocal_``: the run has the nonlocal rheology (``fluidity`` is then its state g)."""
     y = st.x[1]
     nb = len(edges) - 1
     idx = np.searchsorted(edges, y, side="right") - 1
@@ -68,6 +84,9 @@ def depth_profiles(st: State, edges: np.ndarray, solid_density: float, grain_den
         "shear_stress": avg(st.sig[2], wv),
         "normal_stress": avg(-st.sig[1], wv),
     }
+    mu, g = point_fluidity(st, nonlocal_)
+    out["stress_ratio"] = avg(mu, wv)
+    out["fluidity"] = avg(g, wv)
     solid = np.bincount(idx, weights=wm / grain_density, minlength=nb)
     if length is not None and length > 0:
         f = solid / (length * np.diff(edges))

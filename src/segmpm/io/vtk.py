@@ -21,8 +21,12 @@ class VTKSeries:
         self.folder = Path(folder)
         self.entries: list[tuple[float, str]] = []
 
-    def add(self, time: float, st: State) -> Path:
-        """Write a snapshot of the material points at ``time``."""
+    def add(self, time: float, st: State, nonlocal_: bool = False) -> Path:
+        """Write a snapshot of the material points at ``time`` (``nonlocal_``: the fluidity is the
+        nonlocal state g, else γ̇/μ)."""
+        from ..analysis.profiles import point_fluidity
+
+        mu, g = point_fluidity(st, nonlocal_)
         self.folder.mkdir(parents=True, exist_ok=True)
         name = f"particles_{len(self.entries):04d}.vtu"
         n = st.n
@@ -37,6 +41,8 @@ class VTKSeries:
             "sigma_xy": np.ascontiguousarray(st.sig[2]),
             "sigma_yy": np.ascontiguousarray(st.sig[1]),
             "J": np.ascontiguousarray(st.J),
+            "stress_ratio": np.ascontiguousarray(mu),
+            "fluidity": np.ascontiguousarray(g),
         }
         fd, tmp = tempfile.mkstemp(prefix=".vtk.", dir=self.folder)
         os.close(fd)

@@ -58,8 +58,10 @@ from .params import (
     M_ZETA,
 )
 
-#: the fluidity a point with μ > μ_s and g = 0 starts from, as a fraction of its g_loc: g = 0 is a
-#: (unstable) fixed point of the local equation, so a layer at rest would otherwise never flow
+#: the fluidity a point with μ > μ_s and g = 0 exactly starts from, as a fraction of its g_loc:
+#: g = 0 is an (unstable) fixed point of the local equation, so material that has never flowed
+#: (or has just re-contacted from a gas) would otherwise never flow. Only g = 0 is seeded: a
+#: decaying fluidity (a layer below h_stop) is never re-injected
 SEED_FRACTION = 1.0e-3
 
 
@@ -197,7 +199,7 @@ def relax_local(g, mu, p, dbar, dt, prm):
     """The local part t₀ dg/dt = (μ − μ_s) g − b μ √(ρ_s d̄²/p) g² over ``dt``, exactly for μ and
     p frozen (a logistic equation: g → g_loc for μ > μ_s, g → 0 otherwise, monotonically and
     without a step limit). Disconnected material (p ≤ 0) has g = 0. A point with μ > μ_s and
-    g below ``SEED_FRACTION`` g_loc starts from that."""
+    g = 0 starts from ``SEED_FRACTION`` g_loc."""
     if not (p > 0.0):
         return 0.0
     if g != g:
@@ -211,7 +213,7 @@ def relax_local(g, mu, p, dbar, dt, prm):
         g = 0.0
     if lam > 0.0:
         gl = lam / k
-        if g < SEED_FRACTION * gl:
+        if g == 0.0:
             g = SEED_FRACTION * gl
         # g(t) = 1 / (e^{−λt}/g + k (1 − e^{−λt})/λ): no overflow for λ t ≫ 1
         em = math.exp(-lam * dt)
@@ -340,7 +342,7 @@ def relax_local_np(g, mu, p, dbar, dt, prm):
         gi = max(g[i], 0.0)
         if lam > 0:
             gl = lam / k
-            gi = max(gi, SEED_FRACTION * gl)
+            gi = SEED_FRACTION * gl if gi == 0.0 else gi
             em = np.exp(-lam * dt)
             out[i] = 1.0 / (em / gi + (1.0 - em) / gl)
         elif gi == 0.0:

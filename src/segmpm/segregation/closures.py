@@ -14,6 +14,13 @@ Closures (codes ``M_*``):
 * ``hill_tan_full`` (seed Eq. 1 in the vector form (2.1) of physics.md, with
   ψ^{c,s} = φ + b^{c,s}φ(1−φ) and ψ^{k,s} = φ + b^{k,s}φ(1−φ)):
   w = ((b^{c,s} − b^{k,s})/(c_D ρ)) ∂S/∂n − (b^{c,s}/c_D) g·n, D = η/c_D.
+* ``hill_tan_fluidity``: ``hill_tan_full`` with S = σ^k = κ_g ρ (g d̄)², the kinetic stress of the
+  fluctuation speed δv = g d̄/F of the nonlocal fluidity g (Zhang & Kamrin 2017; κ_g = 1/F², the
+  engine computes S; nonlocal rheology only).
+* ``liu_henann`` (the relative flux of Liu, Singh & Henann 2023, driven by shear-rate gradients,
+  with the pressure-gradient term of Singh, Liu & Henann 2024, in the form of docs/segregation.md):
+  w = d̄² (−C_seg ∂γ̇/∂n + C_p (γ̇/p) ∂p/∂n), D = C_diff γ̇ d̄². Small grains move toward lower
+  shear rate and toward higher pressure; S = p (driver P, time-averaged like γ̇).
 * ``gray_thornton`` (Gray & Thornton 2005): w_y = −q (m/s), or w_y = −q γ̇ d̄ with q dimensionless
   when ``q_shear_scaled``; w_x = 0; D = ``diffusivity``.
 * ``fan2014`` (Fan, Schlick, Umbanhowar, Ottino & Lueptow 2014, *JFM* 741): w_y = −S_r γ̇ with
@@ -40,10 +47,14 @@ M_HILL_TAN_REDUCED = 1
 M_HILL_TAN_FULL = 2
 M_GRAY_THORNTON = 3
 M_FAN2014 = 4
+M_LIU_HENANN = 5
 MODEL_CODES: dict[str, int] = {
     "none": M_NONE,
     "hill_tan_reduced": M_HILL_TAN_REDUCED,
     "hill_tan_full": M_HILL_TAN_FULL,
+    # the same flux, with the kinetic stress of the fluidity as S (driver G)
+    "hill_tan_fluidity": M_HILL_TAN_FULL,
+    "liu_henann": M_LIU_HENANN,
     "gray_thornton": M_GRAY_THORNTON,
     "fan2014": M_FAN2014,
 }
@@ -54,7 +65,7 @@ F_UPWIND = 1  #: upwind segregation + central diffusion (kept as a switch, physi
 FLUX_CODES: dict[str, int] = {"sg": F_SG, "upwind": F_UPWIND}
 
 # ---- driver codes (prm[P_DRIVER]; informational, S is computed by the engine) ---------------
-DRIVER_CODES: dict[str, int] = {"A": 0, "B": 1, "C": 2}
+DRIVER_CODES: dict[str, int] = {"A": 0, "B": 1, "C": 2, "P": 3, "G": 4}
 
 # ---- slots of the parameter vector prm (float64) ---------------------------------------------
 P_MODEL = 0  #: closure code M_*
@@ -80,7 +91,10 @@ P_KAPPA = 19  #: κ (engine only: S is passed in already scaled)
 P_KAPPA_T = 20  #: κ_T of driver B (engine only)
 P_DRIVER = 21  #: driver code 0 = A, 1 = B, 2 = C (engine only)
 P_HC = 22  #: resolved concentration-cell size h_c, m
-N_PARAMS = 23
+P_LH_CSEG = 23  #: liu_henann C_seg (shear-rate-gradient term)
+P_LH_CP = 24  #: liu_henann C_p (pressure-gradient term)
+P_LH_CDIFF = 25  #: liu_henann C_diff (D = C_diff γ̇ d̄²)
+N_PARAMS = 26
 
 #: default safety factor on the stability bound of the explicit FV step
 DEFAULT_SAFETY = 0.9
@@ -110,6 +124,9 @@ def make_params(
     kappa_T: float = 0.3,
     driver: str = "A",
     hc: float = 2.5e-4,
+    lh_C_seg: float = 0.2,
+    lh_C_p: float = 0.2,
+    lh_C_diff: float = 0.042,
 ) -> np.ndarray:
     """Build the parameter vector ``prm`` from explicit values (tests, scripts).
 
@@ -145,6 +162,9 @@ def make_params(
     prm[P_KAPPA_T] = kappa_T
     prm[P_DRIVER] = DRIVER_CODES[driver]
     prm[P_HC] = hc
+    prm[P_LH_CSEG] = lh_C_seg
+    prm[P_LH_CP] = lh_C_p
+    prm[P_LH_CDIFF] = lh_C_diff
     return prm
 
 
@@ -152,6 +172,13 @@ def conc_cell_size(cfg: Any) -> float:
     """Resolved concentration-cell size h_c: ``segregation.cell_size`` or half the MPM cell."""
     hc = float(cfg.segregation.cell_size)
     return hc if hc > 0.0 else 0.5 * float(cfg.grid.cell_size)
+
+
+def effective_driver(cfg: Any) -> str:
+    """The driver S a configuration's closure uses (``materials.params.effective_driver``)."""
+    from ..materials.params import effective_driver as _eff
+
+    return _eff(cfg)
 
 
 def pack_params(cfg: Any, gravity_xy: tuple[float, float] | np.ndarray) -> np.ndarray:
@@ -184,8 +211,11 @@ def pack_params(cfg: Any, gravity_xy: tuple[float, float] | np.ndarray) -> np.nd
         fan_D_coeff=s.fan_D_coeff,
         kappa=s.kappa,
         kappa_T=s.kappa_T,
-        driver=s.driver,
+        driver=effective_driver(cfg),
         hc=conc_cell_size(cfg),
+        lh_C_seg=s.lh_C_seg,
+        lh_C_p=s.lh_C_p,
+        lh_C_diff=s.lh_C_diff,
     )
 
 
@@ -229,6 +259,15 @@ def face_velocity_diffusivity(
             else:
                 w = -prm[P_Q]
         return w, prm[P_DIFF]
+    if model == M_LIU_HENANN:
+        # s: time-averaged pressure p (driver P), g: shear rate
+        gdot = 0.5 * (g_a + g_b)
+        pf = 0.5 * (s_a + s_b)
+        dbar = 0.5 * (dbar_a + dbar_b)
+        w = -prm[P_LH_CSEG] * (g_b - g_a) / hc
+        if pf > 0.0:
+            w += prm[P_LH_CP] * gdot / pf * (s_b - s_a) / hc
+        return w * dbar * dbar, prm[P_LH_CDIFF] * gdot * dbar * dbar
     if model == M_FAN2014:
         gdot = 0.5 * (g_a + g_b)
         dbar = 0.5 * (dbar_a + dbar_b)

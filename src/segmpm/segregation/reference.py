@@ -22,6 +22,7 @@ from segmpm.segregation.closures import (
     M_GRAY_THORNTON,
     M_HILL_TAN_FULL,
     M_HILL_TAN_REDUCED,
+    M_LIU_HENANN,
     M_NONE,
     P_B_CS,
     P_B_KS,
@@ -33,6 +34,9 @@ from segmpm.segregation.closures import (
     P_FAN_D,
     P_FAN_S,
     P_FILL_MIN,
+    P_LH_CDIFF,
+    P_LH_CP,
+    P_LH_CSEG,
     P_FLUX,
     P_GX,
     P_GY,
@@ -102,6 +106,14 @@ def face_velocity_diffusivity_np(
         else:
             w = zero
         return w, zero + prm[P_DIFF]
+    if model == M_LIU_HENANN:
+        gdot = 0.5 * (g_a + g_b)
+        pf = 0.5 * (s_a + s_b)
+        dbar = 0.5 * (dbar_a + dbar_b)
+        w = -prm[P_LH_CSEG] * (g_b - g_a) / hc
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = w + np.where(pf > 0, prm[P_LH_CP] * gdot / np.where(pf > 0, pf, 1) * (s_b - s_a) / hc, 0)
+        return w * dbar**2, prm[P_LH_CDIFF] * gdot * dbar**2
     if model == M_FAN2014:
         gdot = 0.5 * (g_a + g_b)
         dbar = 0.5 * (dbar_a + dbar_b)
