@@ -97,6 +97,10 @@ class MaterialConfig(_Section):
     nonlocal_amplitude: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.48
     #: nonlocal: t₀ of t₀ ∂g/∂t = A² d̄² ∇²g − (μ_s − μ) g − b μ √(ρ_s d̄²/p) g², s.
     fluidity_time: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = 1.0e-3
+    #: nonlocal: the g² term's √(ρ_s d̄²/p) uses max(p, p_min), p_min the weight of this many
+    #: grain layers, f ρ_s g d̄₀ (the continuum ends one grain below the free surface, where
+    #: p → 0 makes the term singular; docs/model.md). 0: no floor (the local limit).
+    fluidity_floor_layers: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 1.0
     #: nonlocal: target interval of the fluidity update, s (0 = t₀/4); it is never shorter than
     #: one MPM step.
     fluidity_dt: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 0.0

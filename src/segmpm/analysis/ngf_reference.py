@@ -7,7 +7,9 @@ p = f ρ_s g cos θ ζ and, with the Coulomb sidewall force fully mobilised wher
 moves (the nonlocal model creeps everywhere it is not static), the stress ratio
 μ(ζ) = tan θ − β ζ with β = μ_w K_w / W. The steady fluidity solves
 
-    A² d̄² g'' = (μ_s − μ) g + b μ √(ρ_s d̄²/p) g²,   g'(0) = 0 (free surface), g(H) = 0 (rough base),
+    A² d̄² g'' = (μ_s − μ) g + b μ √(ρ_s d̄²/p̃) g²,   g'(0) = 0 (free surface), g(H) = 0 (rough base),
+
+with p̃ = max(p, p_min) (the model's floor, ``material.fluidity_floor_layers``),
 
 and the velocity follows from γ̇ = g μ with u(H) = 0. This requires μ > 0 over the layer, that is
 H < tan θ / β (checked).
@@ -37,6 +39,7 @@ class NGFParameters:
     solid_fraction: float = 0.6
     gravity: float = 9.81
     beta: float = 0.0  #: μ_w K_w / W, 1/m (0: no sidewalls)
+    p_min: float = 0.0  #: floor of p in the g² term, Pa
 
     @classmethod
     def from_config(cls, cfg: Config) -> NGFParameters:
@@ -44,9 +47,12 @@ class NGFParameters:
         m, mix, b = cfg.material, cfg.mixture, cfg.boundary
         dbar = mix.phi_small_initial * mix.d_small + (1 - mix.phi_small_initial) * mix.d_large
         beta = b.sidewall_friction * b.wall_normal_stress_ratio / cfg.geometry.width
+        from ..materials.params import fluidity_pressure_floor
+
         return cls(cfg.geometry.slope_deg, cfg.geometry.depth, m.static_friction,
                    m.rate_sensitivity, m.nonlocal_amplitude, dbar, m.grain_density,
-                   m.solid_fraction, cfg.time.gravity, beta)  # fmt: skip
+                   m.solid_fraction, cfg.time.gravity, beta,
+                   fluidity_pressure_floor(cfg))  # fmt: skip
 
 
 def h_stop(mu_s: float, A: float, dbar: float, slope_deg: float) -> float:
@@ -91,6 +97,13 @@ def steady_chute(prm: NGFParameters, n: int = 4000) -> dict[str, np.ndarray]:
     # b μ √(ρ_s d̄²/p) with 1/√ζ averaged over each node's cell (it is singular at the surface,
     # and a point value would converge as Δζ^½ only)
     inv_sqrt = 2.0 * (np.sqrt(z + 0.5 * dz) - np.sqrt(z - 0.5 * dz)) / dz
+    if prm.p_min > 0:
+        zm = prm.p_min / gc  # the depth of the floor: 1/√p̃ is 1/√p_min above it
+        lo, hi = np.maximum(z - 0.5 * dz, 0.0), z + 0.5 * dz
+        flat = np.clip(np.minimum(hi, zm) - lo, 0.0, None)
+        a = np.maximum(lo, zm)
+        curved = np.where(hi > a, 2.0 * (np.sqrt(hi) - np.sqrt(np.minimum(a, hi))), 0.0)
+        inv_sqrt = (flat / math.sqrt(zm) + curved) / dz
     c2 = prm.b * mu * d * np.sqrt(prm.rho_s / gc) * inv_sqrt
     D = (prm.A * d) ** 2 / dz**2
     gl = np.where(lam > 0, lam / c2, 0.0)

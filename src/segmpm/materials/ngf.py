@@ -9,7 +9,9 @@ Henann (2015)
     t₀ ∂g/∂t = A² d̄² ∇²g − (μ_s − μ) g − b μ √(ρ_s d̄²/p) g².
 
 Its homogeneous steady state is g_loc = √(p/ρ_s d̄²) (μ − μ_s)/(b μ) (μ > μ_s, else 0): locally
-μ = μ_s + b I, the linear μ(I) of the local model with μ_s for q_c and b for a.
+μ = μ_s + b I, the linear μ(I) of the local model with μ_s for q_c and b for a. The g² term's
+√(ρ_s d̄²/p), singular at a free surface, uses p̃ = max(p, p_min), p_min the weight of
+``material.fluidity_floor_layers`` grain layers (docs/model.md).
 
 Per material point and step (``ngf_update_i1``): the objective elastic predictor of the Fei model,
 then the implicit (unconditionally stable) return of the deviatoric elastic strain,
@@ -51,6 +53,7 @@ from .params import (
     M_KAPPA_T,
     M_MU_S,
     M_NGF_B,
+    M_PFLOOR,
     M_QPHI,
     M_RC,
     M_RHO_S,
@@ -187,16 +190,18 @@ def stress_ratio(sxx, syy, sxy, szz, p):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def local_fluidity(mu, p, dbar, rho_s, mu_s, b):
-    """g_loc = √(p/(ρ_s d̄²)) (μ − μ_s)/(b μ) for μ > μ_s and p > 0, else 0 (1/s)."""
+def local_fluidity(mu, p, dbar, rho_s, mu_s, b, p_min=0.0):
+    """g_loc = √(p̃/(ρ_s d̄²)) (μ − μ_s)/(b μ), p̃ = max(p, p_min), for μ > μ_s and p > 0, else 0
+    (1/s)."""
     if not (p > 0.0 and mu > mu_s):
         return 0.0
-    return math.sqrt(p / rho_s) / dbar * (mu - mu_s) / (b * mu)
+    return math.sqrt(max(p, p_min) / rho_s) / dbar * (mu - mu_s) / (b * mu)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def relax_local(g, mu, p, dbar, dt, prm):
-    """The local part t₀ dg/dt = (μ − μ_s) g − b μ √(ρ_s d̄²/p) g² over ``dt``, exactly for μ and
+    """The local part t₀ dg/dt = (μ − μ_s) g − b μ √(ρ_s d̄²/p̃) g² over ``dt`` (p̃ = max(p, p_min),
+    ``M_PFLOOR``), exactly for μ and
     p frozen (a logistic equation: g → g_loc for μ > μ_s, g → 0 otherwise, monotonically and
     without a step limit). Disconnected material (p ≤ 0) has g = 0. A point with μ > μ_s and
     g = 0 starts from ``SEED_FRACTION`` g_loc."""
@@ -207,7 +212,7 @@ def relax_local(g, mu, p, dbar, dt, prm):
     rho_s = prm[M_RHO_S]
     mu_s = prm[M_MU_S]
     t0 = prm[M_T0]
-    k = prm[M_NGF_B] * mu * dbar * math.sqrt(rho_s / p) / t0
+    k = prm[M_NGF_B] * mu * dbar * math.sqrt(rho_s / max(p, prm[M_PFLOOR])) / t0
     lam = (mu - mu_s) / t0
     if g < 0.0:
         g = 0.0
@@ -319,12 +324,14 @@ def stress_ratio_np(sig: np.ndarray, p: np.ndarray) -> np.ndarray:
         return np.where(p > 0, tau / np.where(p > 0, p, 1.0), 0.0)
 
 
-def local_fluidity_np(mu, p, dbar, rho_s, mu_s, b):
+def local_fluidity_np(mu, p, dbar, rho_s, mu_s, b, p_min=0.0):
     """NumPy :func:`local_fluidity`."""
     mu, p, dbar = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (mu, p, dbar)))
     ok = (p > 0) & (mu > mu_s)
     with np.errstate(invalid="ignore", divide="ignore"):
-        g = np.sqrt(np.where(ok, p, 0.0) / rho_s) / dbar * (mu - mu_s) / (b * np.where(ok, mu, 1))
+        g = np.sqrt(np.maximum(np.where(ok, p, 0.0), p_min) / rho_s) / dbar * (mu - mu_s) / (
+            b * np.where(ok, mu, 1)
+        )
     return np.where(ok, g, 0.0)
 
 
@@ -337,7 +344,7 @@ def relax_local_np(g, mu, p, dbar, dt, prm):
     for i in np.ndindex(g.shape):
         if not p[i] > 0:
             continue
-        k = prm[M_NGF_B] * mu[i] * dbar[i] * np.sqrt(prm[M_RHO_S] / p[i]) / t0
+        k = prm[M_NGF_B] * mu[i] * dbar[i] * np.sqrt(prm[M_RHO_S] / max(p[i], prm[M_PFLOOR])) / t0
         lam = (mu[i] - prm[M_MU_S]) / t0
         gi = max(g[i], 0.0)
         if lam > 0:

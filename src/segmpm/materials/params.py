@@ -54,8 +54,9 @@ DRIVER_G = 4  # S = κ_g ρ (g d̄)² (kinetic stress from the fluidity, Zhang &
     M_T0,  # t₀, fluidity time scale, s
     M_KAPPA_G,  # κ_g of driver G (= 1/F² of δv = g d̄ / F)
     M_FLU_DT,  # target interval of the fluidity update (mpm.fluidity), s
+    M_PFLOOR,  # p_min of the fluidity's local term √(ρ_s d̄²/max(p, p_min)), Pa
     M_NSLOTS,
-) = range(30)
+) = range(31)
 
 
 DRIVER_CODES = {"A": DRIVER_A, "B": DRIVER_B, "C": DRIVER_C, "P": DRIVER_P, "G": DRIVER_G}
@@ -68,6 +69,14 @@ def effective_driver(cfg: Config) -> str:
     """The driver S the engine computes: the closure's own (``CLOSURE_DRIVERS``) or
     ``segregation.driver``."""
     return CLOSURE_DRIVERS.get(cfg.segregation.model, cfg.segregation.driver)
+
+
+def fluidity_pressure_floor(cfg: Config) -> float:
+    """p_min = n f ρ_s g d̄₀ with n = ``material.fluidity_floor_layers``: the weight of n grain
+    layers of the initial mixture (d̄₀ = φ_s0 d_s + (1 − φ_s0) d_l), Pa."""
+    m, mix = cfg.material, cfg.mixture
+    d0 = mix.phi_small_initial * mix.d_small + (1.0 - mix.phi_small_initial) * mix.d_large
+    return m.fluidity_floor_layers * m.solid_fraction * m.grain_density * cfg.time.gravity * d0
 
 
 def pack_material(cfg: Config) -> np.ndarray:
@@ -105,6 +114,7 @@ def pack_material(cfg: Config) -> np.ndarray:
     prm[M_T0] = m.fluidity_time
     prm[M_FLU_DT] = m.fluidity_dt if m.fluidity_dt > 0 else 0.25 * m.fluidity_time
     prm[M_KAPPA_G] = cfg.segregation.kappa_g
+    prm[M_PFLOOR] = fluidity_pressure_floor(cfg)
     E, nu = m.youngs_modulus, m.poisson_ratio
     prm[M_LAMBDA] = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
     prm[M_MU] = E / (2.0 * (1.0 + nu))

@@ -17,9 +17,10 @@ into (Lie splitting)
 2. **local relaxation** at each point with its own μ (from σ), p_e and d̄: the exact solution of
    the logistic equation for μ and p frozen over Δt_g (``materials.ngf.relax_local``).
 
-Boundary conditions (grid nodes): a node holds fluidity when its P2G mass is at least half that
-of a full node (ρ h²); the zero-flux (∂g/∂n = 0) condition of the free surface is then the face
-between the last such node and the first emptier one. Nodes at and beyond a no-slip (rough) base
+Boundary conditions (grid nodes): the free surface is a cut cell: a node's P2G mass fraction
+gives the filled part c of its control volume, which is its capacity in the finite-volume
+update, and the zero-flux (∂g/∂n = 0) face lies between the last node with material in its
+control volume and the first empty one. Nodes at and beyond a no-slip (rough) base
 or wall are Dirichlet nodes with g = 0 (Henann & Kamrin 2013; Haeri & Skonieczny 2022); slip and
 friction walls are zero-flux. Disconnected material (p ≤ 0, gas) has g = 0.
 """
@@ -54,8 +55,15 @@ F_M, F_MG, F_MPHI, F_G, F_G0, F_LAP, F_KIND, NF_FIELDS = range(8)
 #: node kinds (``fw[F_KIND]``)
 K_EMPTY, K_ACTIVE, K_DIRICHLET = 0.0, 1.0, 2.0
 
-#: a node holds fluidity when its P2G mass is at least this fraction of a full node's ρ h²
-FILL_MIN = 0.5
+#: the free surface on the grid: a node's P2G mass fraction θ = m/(ρ h²) (B-spline weighted)
+#: maps to the filled fraction of its control volume c = clamp(1.5 θ − 0.25, 0, 1) (exact for a
+#: flat surface at the node, half a cell above and half a cell below it); nodes with c > 0 hold
+#: fluidity, and c is their capacity in the finite-volume diffusion (a cut cell), so that the
+#: zero-flux surface sits where the material ends, continuously in its position
+FILL_SLOPE, FILL_OFFSET = 1.5, 0.25
+#: floor on the capacity in the explicit update (a nearly empty surface node would otherwise set
+#: a vanishing stable step)
+CAPACITY_MIN = 0.25
 
 #: fraction of the explicit diffusion limit h²/(4 D_max) used per sub-step
 SAFETY = 0.9
@@ -86,7 +94,8 @@ def _wrap(i, n):
 
 @njit(cache=True, error_model="numpy")
 def _node_kinds(fw, gp, mp):
-    """Nodal g (from the P2G sums) and the node kinds; returns D_max = A² d̄²_max / t₀."""
+    """Nodal g (from the P2G sums), the node kinds and capacities; returns the largest
+    D/c = A² d̄²/(t₀ c) (the explicit stability limit)."""
     nx = fw.shape[1]
     ny = fw.shape[2]
     h = gp[G_H]
@@ -104,7 +113,8 @@ def _node_kinds(fw, gp, mp):
             yn = gp[G_Y0] + j * h
             m = fw[F_M, i, j]
             g = 0.0
-            kind = K_ACTIVE if m >= FILL_MIN * m_full else K_EMPTY
+            cap = min(1.0, max(0.0, FILL_SLOPE * m / m_full - FILL_OFFSET))
+            kind = K_ACTIVE if cap > 0.0 else K_EMPTY
             if (
                 (base_rough and yn <= gp[G_BASE_Y] + tol)
                 or (lo_rough and xn <= gp[G_XLO] + tol)
@@ -118,7 +128,9 @@ def _node_kinds(fw, gp, mp):
                 d = phi * mp[M_DS] + (1.0 - phi) * mp[M_DL]
                 # the diffusivity A² d̄²/t₀ of the node, kept in the Laplacian slot until used
                 fw[F_LAP, i, j] = coef * d * d
-                dmax = max(dmax, fw[F_LAP, i, j])
+                dmax = max(dmax, fw[F_LAP, i, j] / max(cap, CAPACITY_MIN))
+            # the capacity, kept in the φ slot (no longer needed)
+            fw[F_MPHI, i, j] = max(cap, CAPACITY_MIN) if kind == K_ACTIVE else 0.0
             fw[F_KIND, i, j] = kind
             fw[F_G, i, j] = g
             fw[F_G0, i, j] = g
@@ -127,9 +139,10 @@ def _node_kinds(fw, gp, mp):
 
 @njit(cache=True, error_model="numpy")
 def _diffuse(fw, gp, dt, dmax):
-    """Explicit five-point diffusion of the nodal g over ``dt`` (sub-stepped); returns the number
-    of sub-steps. Face diffusivity: the mean of the two nodes' (the active node's at a Dirichlet
-    neighbour); no flux into empty nodes."""
+    """Explicit five-point finite-volume diffusion of the nodal g over ``dt`` (sub-stepped):
+    c_i ∂g_i/∂t = Σ_faces D_f (g_j − g_i)/h² with the capacity c_i of the node (``_node_kinds``);
+    returns the number of sub-steps. Face diffusivity: the mean of the two nodes' (the active
+    node's at a Dirichlet neighbour); no flux into empty nodes."""
     if not (dmax > 0.0) or not (dt > 0.0):
         return 0
     nx = fw.shape[1]
@@ -179,7 +192,7 @@ def _diffuse(fw, gp, dt, dmax):
         for i in range(nx):
             for j in range(ny):
                 if kind[i, j] == K_ACTIVE:
-                    g[i, j] += ds * lap[i, j]
+                    g[i, j] += ds * lap[i, j] / fw[F_MPHI, i, j]
     return nsub
 
 
@@ -284,7 +297,8 @@ def fluidity_step_np(x, mass, phi, sig, pres, gf, gp, mp, dt):
         np.add.at(MG, (I, Jn), W * (mass * gf)[:, None, None])
         np.add.at(MF, (I, Jn), W * (mass * phi)[:, None, None])
         m_full = mp[M_F] * mp[M_RHO_S] * h * h
-        active = M >= FILL_MIN * m_full
+        cap = np.clip(FILL_SLOPE * M / m_full - FILL_OFFSET, 0.0, 1.0)
+        active = cap > 0
         with np.errstate(invalid="ignore", divide="ignore"):
             g = np.where(active, MG / np.where(active, M, 1), 0.0)
             ph = np.clip(np.where(active, MF / np.where(active, M, 1), 0.0), 0, 1)
@@ -305,7 +319,8 @@ def fluidity_step_np(x, mass, phi, sig, pres, gf, gp, mp, dt):
         g[dirichlet] = 0.0
         D[dirichlet] = 0.0
         g0 = g.copy()
-        dmax = D[active].max() if active.any() else 0.0
+        capf = np.maximum(cap, CAPACITY_MIN)
+        dmax = (D / capf)[active].max() if active.any() else 0.0
         if dmax > 0 and dt > 0:
             nsub = max(1, int(math.ceil(dt * 4 * dmax / h**2 / SAFETY)))
             ds = dt / nsub
@@ -327,7 +342,7 @@ def fluidity_step_np(x, mass, phi, sig, pres, gf, gp, mp, dt):
                         valid[0, :] = False
                     lap += np.where(valid & As, 0.5 * (D + Ds) * (gs - g), 0.0)
                     lap += np.where(valid & Ks, -D * g, 0.0)
-                g = g + ds * np.where(active, lap / h**2, 0.0)
+                g = g + ds * np.where(active, lap / (h**2 * capf), 0.0)
             inc = np.where(active, g - g0, 0.0)
             seen = active | dirichlet
             Wk = W * seen[I, Jn]
