@@ -17,6 +17,7 @@ EDGES = np.arange(11) * 1e-3  # ten 1 mm bins, centres 0.5 … 9.5 mm
 Y = 0.5 * (EDGES[1:] + EDGES[:-1])
 TOP = 8  # bins 0..7 hold material, 8 and 9 are empty (NaN)
 RUN_TIMES = [0.0, 1.0, 20.0]
+PHI0 = 0.45  # the run's well-mixed φ_s (its configuration)
 
 
 def run_phi(y, t):
@@ -29,7 +30,8 @@ def run_u(y, t):
 
 def make_run(path):
     path.mkdir(parents=True, exist_ok=True)
-    w = ProfileWriter(path / "profiles.nc", EDGES, {"title": "synthetic"})
+    attrs = {"title": "synthetic", "configuration": f"[mixture]\nphi_small_initial = {PHI0}\n"}
+    w = ProfileWriter(path / "profiles.nc", EDGES, attrs)
     for t in RUN_TIMES:
         prof = {k: np.full(len(Y), np.nan) for k in PROFILE_VARIABLES}
         prof["phi_small"][:TOP] = run_phi(Y[:TOP], t)
@@ -60,17 +62,28 @@ def write_reference(path, times=(1.0, 20.0, 5.0), y_shift=0.0, header=None, extr
 
 
 def expected(t):
-    dphi, du = DPHI[INSIDE], DU[INSIDE]
+    """The norms over the whole depth of the reference: the two rows outside the run's bins are
+    compared with the run's value at its nearest bin centre (0.5 mm below, 7.5 mm above)."""
+    ext_y = np.clip(REF_Y, Y[0], Y[TOP - 1])
+    dphi = run_phi(ext_y, t) - (run_phi(REF_Y, t) - DPHI)
+    du = run_u(ext_y, t) - (run_u(REF_Y, t) - DU)
     u_ref = run_u(REF_Y, t) - DU
     us_ref = np.mean(u_ref[-2:])  # the two highest reference rows with data
+    phi_ref = run_phi(REF_Y, t) - DPHI
+    mixed = math.sqrt(np.mean((phi_ref - PHI0) ** 2))
     return {
         "phi_rms": math.sqrt(np.mean(dphi**2)),
         "phi_max": np.max(np.abs(dphi)),
         "u_rms": math.sqrt(np.mean(du**2)),
         "u_rms_rel": math.sqrt(np.mean(du**2)) / abs(us_ref),
+        "phi_rms_overlap": math.sqrt(np.mean(DPHI[INSIDE] ** 2)),
+        "u_rms_rel_overlap": math.sqrt(np.mean(DU[INSIDE] ** 2)) / abs(us_ref),
+        "phi_rms_mixed": mixed,
+        "segregation_skill": 1 - math.sqrt(np.mean(dphi**2)) / mixed,
         "u_surface_reference": us_ref,
         "u_surface_run": np.mean(run_u(Y[TOP - 2 : TOP], t)),
-        "n_phi": int(INSIDE.sum()),
+        "n_phi": len(REF_Y),
+        "n_phi_outside": int((~INSIDE).sum()),
     }
 
 
@@ -92,7 +105,7 @@ def test_norms_equal_analytic_values(run_dir, tmp_path, capsys):
         got = data["per_time"][f"{t:g}"]
         for k, v in expected(t).items():
             assert got[k] == pytest.approx(v, rel=1e-9, abs=1e-12), (t, k)
-        assert got["n_velocity"] == INSIDE.sum()
+        assert got["n_velocity"] == len(REF_Y)
     assert (run_dir / "figures" / "compare.png").stat().st_size > 1000
 
 
@@ -111,9 +124,9 @@ def test_missing_values_in_reference_are_skipped(run_dir, tmp_path):
     ref = write_reference(tmp_path / "ref.csv", times=(1.0,), extra_rows=["1,0.004,0.5,,3"])
     assert compare_run(run_dir, ref) == 0
     got = json.loads((run_dir / "compare.json").read_text())["per_time"]["1"]
-    assert got["n_phi"] == INSIDE.sum() + 1 and got["n_velocity"] == INSIDE.sum()
+    assert got["n_phi"] == len(REF_Y) + 1 and got["n_velocity"] == len(REF_Y)
     dphi = np.append(DPHI[INSIDE], run_phi(0.004, 1.0) - 0.5)
-    assert got["phi_rms"] == pytest.approx(math.sqrt(np.mean(dphi**2)), rel=1e-9)
+    assert got["phi_rms_overlap"] == pytest.approx(math.sqrt(np.mean(dphi**2)), rel=1e-9)
 
 
 def test_surface_velocity_definition():

@@ -11,6 +11,8 @@ from segmpm.cli import main
 
 FAST = ["geometry.depth=0.008", "geometry.length=0.002", "boundary.sidewall_friction=0",
         "material.stiffness_scale=1e-3"]  # fmt: skip
+NONLOCAL = ["material.rheology='nonlocal'", "material.q_phi=0.75", "material.static_friction=0.39",
+            "material.rate_sensitivity=0.34"]  # fmt: skip
 
 
 @pytest.mark.parametrize(
@@ -21,6 +23,9 @@ FAST = ["geometry.depth=0.008", "geometry.length=0.002", "boundary.sidewall_fric
         ["segregation.model='hill_tan_full'", "segregation.b_c_small=-0.02"],
         ["segregation.model='gray_thornton'", "segregation.q=0.01"],
         ["segregation.model='fan2014'", "segregation.fan_S=2e-4"],
+        ["segregation.model='liu_henann'"],
+        NONLOCAL + ["segregation.model='liu_henann'"],
+        NONLOCAL + ["segregation.model='hill_tan_fluidity'", "segregation.b_c_small=-0.02"],
     ],
 )
 def test_conserved_bounded_and_moving(closure):
@@ -39,6 +44,11 @@ def test_conserved_bounded_and_moving(closure):
     [
         ["segregation.model='hill_tan_full'", "segregation.b_c_small=-0.02"],
         ["segregation.model='gray_thornton'", "segregation.q=0.01"],
+        # the pressure-gradient term (small grains toward higher pressure) outweighs the
+        # shear-rate-gradient term (toward lower shear rate, here up) when C_p > C_seg/2
+        ["segregation.model='liu_henann'", "segregation.lh_C_seg=0.02", "segregation.lh_C_p=0.1"],
+        NONLOCAL + ["segregation.model='liu_henann'", "segregation.lh_C_seg=0.02",
+                    "segregation.lh_C_p=0.1"],  # fmt: skip
         # Bagnold flow (no sidewalls): S_A = μ_d p and S_B ∝ ρ(γ̇ d̄)² grow downward, so the reduced
         # model lifts the small grains (physics.md §2.5) — the sign rule tested the other way round
         ["segregation.model='hill_tan_reduced'", "segregation.driver='A'"],

@@ -23,6 +23,7 @@ CASES = {
     "fei-b1-driverA-bulk": ["segregation.driver='A'", "material.bulk_viscosity=0.1"],
     "fei-power-driverC": ["material.b=0.7", "segregation.driver='C'"],
     "linear-elastic": ["material.model='linear_elastic'"],
+    "fei-b1-driverP": ["segregation.model='liu_henann'"],
     "nonlocal-driverG": ["material.rheology='nonlocal'", "material.q_phi=0.6",
                          "segregation.model='hill_tan_fluidity'"],  # fmt: skip
     "nonlocal-driverP-bulk": ["material.rheology='nonlocal'", "material.q_phi=0.6",

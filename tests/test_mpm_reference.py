@@ -18,6 +18,12 @@ CASES = {
         "geometry.length=0.003", "geometry.depth=0.004", "material.model='linear_elastic'",
         "boundary.base='friction'", "boundary.base_friction=0.3",
     ],
+    "chute-nonlocal-rate-wall": [
+        "geometry.length=0.003", "geometry.depth=0.004", "material.stiffness_scale=1e-3",
+        "material.rheology='nonlocal'", "material.q_phi=0.6", "material.fluidity_dt=1e-9",
+        "boundary.sidewall_friction_slow=0.1", "boundary.sidewall_slip_speed=0.05",
+        "segregation.model='liu_henann'",
+    ],
     "collapse-friction-walls": [
         "scenario.kind='collapse'", "geometry.length=0.006", "geometry.column_width=0.003",
         "geometry.column_height=0.004", "boundary.walls='friction'", "geometry.slope_deg=10",
@@ -39,6 +45,7 @@ def test_one_step_matches_numpy_reference(case, rng):
     st.C[:] = rng.normal(scale=5.0, size=st.C.shape)
     st.eps[2] += rng.normal(scale=1e-6, size=st.n)
     st.phi[:] = rng.uniform(0, 1, st.n)
+    st.gf[:] = rng.uniform(0, 50, st.n)  # the fluidity (read by the nonlocal case only)
     sim._primed = False
     st.sc[1] = 0  # re-prime the stresses from the perturbed strain
     sim._prime()

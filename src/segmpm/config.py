@@ -125,8 +125,11 @@ class MaterialConfig(_Section):
     shear_rate_floor: Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)] = 1e-6
     #: bulk viscosity ζ_b as a fraction of ρ c h (physics.md §5.5), 0 disables.
     bulk_viscosity: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.0
-    #: initial state: "geostatic" (I1 from the oedometric law under the initial load) or "stress_free".
-    initial_state: Literal["geostatic", "stress_free"] = "geostatic"
+    #: initial state: "geostatic" (I1 from the oedometric law under the initial load: a lateral
+    #: stress ratio K₀ < 1), "isotropic" (the same load as an isotropic pressure, no deviatoric
+    #: stress: the relaxed state the nonlocal flow rule starts from, docs/model.md) or
+    #: "stress_free".
+    initial_state: Literal["geostatic", "isotropic", "stress_free"] = "geostatic"
     #: linear elastic: Young's modulus E (Pa) and Poisson's ratio ν.
     youngs_modulus: Annotated[float, Field(gt=0, le=1e13, allow_inf_nan=False)] = 1.0e6
     poisson_ratio: Annotated[float, Field(ge=0, lt=0.5, allow_inf_nan=False)] = 0.0
@@ -207,6 +210,12 @@ class BoundaryConfig(_Section):
 
     #: μ_w of the sidewall body force −(2 μ_w K_w p / W) v/|v| (0 disables it).
     sidewall_friction: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.3
+    #: a sidewall friction that grows with the sliding speed u (the width-averaged velocity),
+    #: μ_w(u) = μ_w0 + (μ_w − μ_w0) u/(u + u_w), μ_w0 = ``sidewall_friction_slow``,
+    #: u_w = ``sidewall_slip_speed`` (m/s; 0 = the constant Coulomb μ_w). The mobilised friction
+    #: of the grains on a flat wall measured in DEM has this form (docs/calibration.md).
+    sidewall_friction_slow: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.0
+    sidewall_slip_speed: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.0
     #: K_w, ratio of the wall normal stress to the pressure.
     wall_normal_stress_ratio: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 1.0
     #: base (y = 0): no-slip (rough), free-slip, or Coulomb friction.

@@ -9,9 +9,18 @@ Definitions (interface.md, "Reference profiles (CSV) read by compare"):
   match when they differ by at most :data:`TIME_TOL` = 1e-6 s.
 * At each time and for each of ``phi_small`` and ``velocity_x`` separately, the run's profile with
   its NaN (empty) bins dropped is interpolated linearly (``numpy.interp``) at the reference heights
-  ``y_m + y_offset``. Only reference rows with a finite value whose shifted height lies within the
-  run's defined bin centres ``[min, max]`` are compared (no extrapolation). Δ = run − reference.
+  ``y_m + y_offset``, over the **whole depth of the reference**: a reference row above the run's
+  highest (or below its lowest) non-empty bin centre is compared with the run's value there
+  (the profile extended as a constant: a run whose surface lies lower than the reference's is
+  charged for the missing layer). Δ = run − reference. The same norms restricted to the rows
+  within the run's bins are reported with the suffix ``_overlap``, and ``n_phi_outside``,
+  ``n_velocity_outside`` count the rows outside.
 * ``phi_rms`` = sqrt(mean Δφ_s²), ``phi_max`` = max |Δφ_s|.
+* ``segregation_skill`` = 1 − phi_rms / phi_rms_mixed, with phi_rms_mixed the RMS of
+  φ_s,ref − φ₀ (φ₀: the run's initial, well-mixed small-grain fraction, ``mixture.
+  phi_small_initial`` of its configuration) over the same rows: 1 is a perfect prediction, 0 is
+  no better than predicting no segregation, negative is worse (null when the reference is still
+  mixed, phi_rms_mixed ≤ 1e-9).
 * Surface velocity u_s of a profile: the mean of ``velocity_x`` over its :data:`SURFACE_BINS` = 2
   highest bins (rows) with a finite velocity (one bin if only one has data). Computed the same way
   for the reference (its rows at that time) and for the run (its bins).
@@ -79,6 +88,8 @@ class RunProfiles:
     y: np.ndarray
     phi: np.ndarray
     u: np.ndarray
+    #: the well-mixed small-grain fraction of the run (its initial φ_s)
+    phi0: float = math.nan
 
     def index(self, t: float) -> int:
         return int(np.argmin(np.abs(self.time - t)))
@@ -208,13 +219,28 @@ def read_run(out_dir: str | Path) -> RunProfiles:
     time = np.asarray(ds["time"].values, dtype=float)
     if time.size == 0:
         raise CompareError(f"run profiles {str(path)!r} hold no output time yet")
+    phi = np.asarray(ds["phi_small"].values, dtype=float)
     return RunProfiles(
         path,
         time,
         np.asarray(ds["y"].values, dtype=float),
-        np.asarray(ds["phi_small"].values, dtype=float),
+        phi,
         np.asarray(ds["velocity_x"].values, dtype=float),
+        _well_mixed(ds, phi),
     )
+
+
+def _well_mixed(ds: Any, phi: np.ndarray) -> float:
+    """φ₀ of a run: ``mixture.phi_small_initial`` of the configuration in the attributes, else the
+    mean of the first profile."""
+    import tomllib
+
+    try:
+        cfg = tomllib.loads(str(ds.attrs.get("configuration", "")))
+        return float(cfg["mixture"]["phi_small_initial"])
+    except (tomllib.TOMLDecodeError, KeyError, TypeError, ValueError):
+        first = phi[0][np.isfinite(phi[0])] if phi.size else np.zeros(0)
+        return float(first.mean()) if first.size else math.nan
 
 
 # ---------------------------------------------------------------------------------- metrics
@@ -232,20 +258,27 @@ def surface_velocity(y: np.ndarray, u: np.ndarray, nbins: int = SURFACE_BINS) ->
 
 
 def interpolate_defined(y_run: np.ndarray, v_run: np.ndarray, y_ref: np.ndarray,
-                        v_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """The run interpolated at the reference heights where both are defined.
+                        v_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """The run interpolated at every reference height with a finite reference value (beyond
+    the run's defined bins: its nearest defined value).
 
-    Returns (y, run value, reference value) at the compared points.
+    Returns (y, run value, reference value, inside) at the compared points; ``inside`` marks the
+    rows within the run's defined bin centres.
     """
     ok = np.isfinite(v_run) & np.isfinite(y_run)
     yr, vr = y_run[ok], v_run[ok]
     if yr.size == 0:
         empty = np.zeros(0)
-        return empty, empty, empty
+        return empty, empty, empty, empty.astype(bool)
     order = np.argsort(yr)
     yr, vr = yr[order], vr[order]
-    m = np.isfinite(v_ref) & (y_ref >= yr[0] - 1e-12) & (y_ref <= yr[-1] + 1e-12)
-    return y_ref[m], np.interp(y_ref[m], yr, vr), v_ref[m]
+    m = np.isfinite(v_ref)
+    inside = (y_ref[m] >= yr[0] - 1e-12) & (y_ref[m] <= yr[-1] + 1e-12)
+    return y_ref[m], np.interp(y_ref[m], yr, vr), v_ref[m], inside
+
+
+def _rms(a: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(a**2))) if a.size else math.nan
 
 
 def compare_time(run: RunProfiles, ref: Reference, t: float, y_offset: float) -> dict[str, Any]:
@@ -253,24 +286,33 @@ def compare_time(run: RunProfiles, ref: Reference, t: float, y_offset: float) ->
     i = run.index(t)
     y_ref, phi_ref, u_ref = ref.at(t)
     y_ref = y_ref + y_offset
-    yp, phi_run, phi_r = interpolate_defined(run.y, run.phi[i], y_ref, phi_ref)
-    yu, u_run, u_r = interpolate_defined(run.y, run.u[i], y_ref, u_ref)
+    yp, phi_run, phi_r, ip = interpolate_defined(run.y, run.phi[i], y_ref, phi_ref)
+    yu, u_run, u_r, iu = interpolate_defined(run.y, run.u[i], y_ref, u_ref)
     dphi = phi_run - phi_r
     du = u_run - u_r
     us_ref = surface_velocity(y_ref, u_ref)
     us_run = surface_velocity(run.y, run.u[i])
-    u_rms = float(np.sqrt(np.mean(du**2))) if du.size else math.nan
-    rel = u_rms / abs(us_ref) if (math.isfinite(us_ref) and abs(us_ref) > 1e-12) else math.nan
+    ok_us = math.isfinite(us_ref) and abs(us_ref) > 1e-12
+    u_rms = _rms(du)
+    mixed = _rms(phi_r - run.phi0) if math.isfinite(run.phi0) else math.nan
+    phi_rms = _rms(dphi)
     return {
         "time": float(run.time[i]),
         "n_phi": int(dphi.size),
         "n_velocity": int(du.size),
-        "phi_rms": float(np.sqrt(np.mean(dphi**2))) if dphi.size else math.nan,
+        "n_phi_outside": int((~ip).sum()),
+        "n_velocity_outside": int((~iu).sum()),
+        "phi_rms": phi_rms,
         "phi_max": float(np.max(np.abs(dphi))) if dphi.size else math.nan,
+        "phi_rms_mixed": mixed,
+        "segregation_skill": 1.0 - phi_rms / mixed if mixed > 1e-9 else math.nan,
         "u_rms": u_rms,
-        "u_rms_rel": rel,
+        "u_rms_rel": u_rms / abs(us_ref) if ok_us else math.nan,
+        "phi_rms_overlap": _rms(dphi[ip]),
+        "u_rms_rel_overlap": _rms(du[iu]) / abs(us_ref) if ok_us else math.nan,
         "u_surface_run": us_run,
         "u_surface_reference": us_ref,
+        "phi_small_well_mixed": run.phi0,
         "y_range_phi": [float(yp.min()), float(yp.max())] if yp.size else None,
         "y_range_velocity": [float(yu.min()), float(yu.max())] if yu.size else None,
     }
@@ -338,13 +380,14 @@ def format_table(results: list[dict[str, Any]]) -> str:
         return format(v, fmt) if (v is not None and math.isfinite(v)) else "n/a"
 
     head = (
-        f"{'t (s)':>8} {'n':>4} {'rms dphi':>9} {'max|dphi|':>9} {'rms du/us':>9} "
-        f"{'us run':>9} {'us ref':>9}  (us: surface velocity, m/s)"
+        f"{'t (s)':>8} {'n':>4} {'rms dphi':>9} {'max|dphi|':>9} {'skill':>7} {'rms du/us':>9} "
+        f"{'us run':>9} {'us ref':>9}  (us: surface velocity, m/s; whole reference depth)"
     )
     rows = [head]
     for r in results:
         rows.append(
             f"{r['time']:>8g} {r['n_phi']:>4d} {f(r['phi_rms'], '9.4f')} {f(r['phi_max'], '9.4f')} "
+            f"{f(r['segregation_skill'], '7.3f')} "
             f"{f(r['u_rms_rel'], '9.4f')} {f(r['u_surface_run'], '9.4g')} "
             f"{f(r['u_surface_reference'], '9.4g')}"
         )
@@ -412,7 +455,8 @@ def compare(out_dir: str | Path, reference: str | Path, times: list[float] | Non
     ref = read_reference(reference)
     sel = select_times(run, ref, times)
     results = [compare_time(run, ref, t, y_offset) for t in sel]
-    empty = [r["time"] for r in results if r["n_phi"] == 0 or r["n_velocity"] == 0]
+    empty = [r["time"] for r in results if r["n_phi"] == r["n_phi_outside"]
+             or r["n_velocity"] == r["n_velocity_outside"]]  # fmt: skip
     if empty:
         raise CompareError(
             f"at t = {', '.join(f'{t:g}' for t in empty)} s the run {str(run.path)!r} and the "
@@ -427,8 +471,11 @@ def compare(out_dir: str | Path, reference: str | Path, times: list[float] | Non
         "reference": str(Path(reference).resolve()),
         "y_offset": y_offset,
         "definitions": {
-            "delta": "run - reference, run interpolated linearly at reference y_m + y_offset "
-            "where both are defined (no extrapolation beyond the run's non-empty bin centres)",
+            "delta": "run - reference, run interpolated linearly at every reference y_m + "
+            "y_offset with a value; beyond the run's non-empty bin centres the run's nearest "
+            "value (whole depth of the reference); *_overlap: only the rows within them",
+            "segregation_skill": "1 - phi_rms / phi_rms_mixed, phi_rms_mixed = rms(phi_ref - "
+            "phi0), phi0 the run's initial phi_small",
             "phi_rms": "sqrt(mean(delta phi_small^2))",
             "phi_max": "max |delta phi_small|",
             "u_rms": "sqrt(mean(delta velocity_x^2)), m/s",

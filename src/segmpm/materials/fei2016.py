@@ -21,6 +21,7 @@ from .._fmath import flog, fsqrt
 from .params import (
     DRIVER_A,
     DRIVER_B,
+    DRIVER_P,
     M_A,
     M_C,
     M_CAPR,
@@ -159,6 +160,8 @@ def fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, l
         S = eta * gdot  # = μ_d(I) p_e = √J₂(σ^d)
     elif driver == DRIVER_B:
         S = prm[M_KAPPA_T] * rho * (gdot * dbar) ** 2
+    elif driver == DRIVER_P:
+        S = pe
     else:
         S = -2.0 * eta * dpyy
     S *= prm[M_KAPPA]
@@ -258,6 +261,8 @@ def fei_update_np(prm, L, dt, eps, J, phi):
         S = eta * gdot
     elif drv == DRIVER_B:
         S = prm[M_KAPPA_T] * rho * (gdot * dbar) ** 2
+    elif drv == DRIVER_P:
+        S = pe.copy()
     else:
         S = -2.0 * eta * Dp[:, 1, 1]
     S = np.where(gas, 0.0, S * prm[M_KAPPA])

@@ -14,9 +14,10 @@ Its homogeneous steady state is g_loc = √(p/ρ_s d̄²) (μ − μ_s)/(b μ) (
 ``material.fluidity_floor_layers`` grain layers (docs/model.md).
 
 Per material point and step (``ngf_update_i1``): the objective elastic predictor of the Fei model,
-then the implicit (unconditionally stable) return of the deviatoric elastic strain,
-ε⁰ ← ε⁰_tr p/(p + G Δt g) (that is τ = τ_tr p/(p + G Δt g), G = C√I₁/2 the shear modulus), then the
-Jiang–Liu convexity guard √I₂ ≤ r_c I₁/q_φ and the stress. There is no σ^d: the rate dependence is
+the Jiang–Liu convexity guard √I₂ ≤ r_c I₁/q_φ on the trial state, then the implicit
+(unconditionally stable) return of the deviatoric elastic strain,
+ε⁰ ← ε⁰_tr p/(p + G Δt g) (that is τ = τ_tr p/(p + G Δt g), G = C√I₁/2 the shear modulus, p the
+Jiang–Liu pressure of the returned state: ``return_factor``), then the stress. There is no σ^d: the rate dependence is
 the fluidity's. The fluidity itself is advanced between steps by ``mpm.fluidity``: nonlocal
 diffusion on the MPM grid, then ``relax_local`` at the points (the exact solution of the local
 part for coefficients frozen over the interval). g = 0 where the material is disconnected
@@ -111,15 +112,8 @@ def ngf_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, g
     e0zz = ezz - t3
     e0xy = exy
     I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz + 2.0 * e0xy * e0xy)
-    sq = fsqrt(I1)
-    isq = 1.0 / sq
-    f = return_factor(2.5 * A * I1 * sq, 0.5 * C * I2 * isq, 0.5 * C * sq * dt * gf)
-    e0xx *= f
-    e0yy *= f
-    e0zz *= f
-    e0xy *= f
-    I2 *= f * f
-    # convexity guard of the energy (not the yield criterion here: q_φ exceeds the flow's μ)
+    # convexity guard of the energy on the trial state (not the yield criterion here: q_φ exceeds
+    # the flow's μ): it keeps a2 ≤ a0 in the return, whose root is then unique
     cap = prm[M_CAPR] * I1
     over = I2 > cap * cap
     s = cap / fsqrt(I2) if over else 1.0
@@ -128,6 +122,14 @@ def ngf_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, g
     e0zz *= s
     e0xy *= s
     I2 = cap * cap if over else I2
+    sq = fsqrt(I1)
+    isq = 1.0 / sq
+    f = return_factor(2.5 * A * I1 * sq, 0.5 * C * I2 * isq, 0.5 * C * sq * dt * gf)
+    e0xx *= f
+    e0yy *= f
+    e0zz *= f
+    e0xy *= f
+    I2 *= f * f
     third = I1 * THIRD
 
     pe = 2.5 * A * I1 * sq + 0.5 * C * I2 * isq
@@ -261,14 +263,14 @@ def ngf_update_np(prm, L, dt, eps, J, phi, gf):
     sq = np.sqrt(I1p)
     E0 = E3 - np.trace(E3, axis1=1, axis2=2)[:, None, None] / 3.0 * eye
     I2 = 0.5 * np.einsum("nij,nij->n", E0, E0)
-    factor = return_factor_np(2.5 * A * I1p**1.5, 0.5 * C * I2 / sq, 0.5 * C * sq * dt * gf)
-    E0 = E0 * factor[:, None, None]
-    I2 = I2 * factor**2
     cap = prm[M_RC] * I1p / prm[M_QPHI]
     scale = np.where(I2 > cap**2, cap / np.sqrt(np.where(I2 > 0, I2, 1.0)), 1.0)
     E0 = E0 * scale[:, None, None]
+    I2 = np.minimum(I2, cap**2)
+    factor = return_factor_np(2.5 * A * I1p**1.5, 0.5 * C * I2 / sq, 0.5 * C * sq * dt * gf)
+    E0 = E0 * factor[:, None, None]
     E0[gas] = 0.0
-    I2 = np.where(gas, 0.0, np.minimum(I2, cap**2))
+    I2 = np.where(gas, 0.0, I2 * factor**2)
     Enew = E0 - (I1 / 3.0)[:, None, None] * eye
     pe = np.where(gas, 0.0, 2.5 * A * I1p**1.5 + 0.5 * C * I2 / sq)
     dbar = phi * prm[M_DS] + (1.0 - phi) * prm[M_DL]

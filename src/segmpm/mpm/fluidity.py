@@ -68,6 +68,9 @@ CAPACITY_MIN = 0.25
 #: fraction of the explicit diffusion limit h²/(4 D_max) used per sub-step
 SAFETY = 0.9
 
+#: floor of a point's g after the diffusion increment (see ``fluidity_step``)
+TINY = 1e-300
+
 #: PIC share of the G2P of g: g_p ← (1 − PIC)(g_p + Σ w Δg_i) + PIC Σ w g_i / Σ w. The increment
 #: alone (FLIP) leaves the point-scale modes of g, which the grid cannot see, undamped, and a
 #: point driven to g = 0 by a negative increment then stays there (the local growth from the seed
@@ -257,7 +260,9 @@ def fluidity_step(x, mass, phi, sig, pres, gf, gp, mp, fw, dt):
             if wsum > 0.0:
                 # a small PIC share damps the point-scale modes the grid cannot see
                 g = (1.0 - PIC) * g + PIC * gi / wsum
-            g = max(0.0, g)
+            # a point diffused to (or below) zero keeps a tiny positive g, so that it is not
+            # seeded again (``relax_local`` seeds only g = 0: material that never had fluidity)
+            g = max(TINY, g) if gf[p] > 0.0 else max(0.0, g)
         mu = stress_ratio(sig[0, p], sig[1, p], sig[2, p], sig[3, p], pres[p])
         dbar = phi[p] * ds + (1.0 - phi[p]) * dl
         gf[p] = relax_local(g, mu, pres[p], dbar, dt, mp)
@@ -350,7 +355,8 @@ def fluidity_step_np(x, mass, phi, sig, pres, gf, gp, mp, dt):
             gflip = gnew + np.sum(W * inc[I, Jn], axis=(1, 2))
             with np.errstate(invalid="ignore", divide="ignore"):
                 gpic = np.sum(Wk * np.where(seen, g, 0.0)[I, Jn], axis=(1, 2)) / np.where(wsum > 0, wsum, 1)
-            gnew = np.maximum(0.0, np.where(wsum > 0, (1 - PIC) * gflip + PIC * gpic, gflip))
+            gb = np.where(wsum > 0, (1 - PIC) * gflip + PIC * gpic, gflip)
+            gnew = np.where(np.asarray(gf) > 0, np.maximum(TINY, gb), np.maximum(0.0, gb))
     mu = stress_ratio_np(sig, pres)
     dbar = phi * mp[M_DS] + (1 - phi) * mp[M_DL]
     return relax_local_np(gnew, mu, pres, dbar, dt, mp), nsub

@@ -43,8 +43,10 @@ TRANSFER_AFLIP = 2  # APIC affine transfer with a FLIP velocity update (Fei et a
     G_IMAGES,  # 1: image (mirror) nodes behind no-slip walls that lie on a node plane
     G_VISC,  # viscous number: Δt ≤ G_VISC h²/(2 ν_max)
     G_CFLOOR,  # floor on the wave speed of the time step, m/s (the loaded material's c)
+    G_SW_SLOW,  # 2 μ_w0 K_w / W: the sidewall factor at vanishing speed, 1/m
+    G_SW_SPEED,  # u_w of μ_w(u) = μ_w0 + (μ_w − μ_w0) u/(u + u_w), m/s (0: constant μ_w)
     G_NSLOTS,
-) = range(28)
+) = range(30)
 
 # scalar state carried between chunks (float64 array)
 (

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..materials import material_update_np
+from ..materials import KIND_FEI2016_NGF, material_update_np
+from ..materials.params import M_FLU_DT, M_KIND
 from .params import (
     BC_FRICTION,
     BC_NOSLIP,
@@ -32,6 +33,8 @@ from .params import (
     G_PERIODIC,
     G_RAMP,
     G_SIDEWALL,
+    G_SW_SLOW,
+    G_SW_SPEED,
     G_TRANSFER,
     G_VISC,
     G_WALL_MU,
@@ -42,9 +45,11 @@ from .params import (
     G_XLO_KIND,
     G_Y0,
     S_DT,
+    S_NFLU,
     S_NUMAX,
     S_SMAX,
     S_STEP,
+    S_TFLU,
     S_TIME,
     S_TSEG,
     TRANSFER_AFLIP,
@@ -210,11 +215,15 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
     vx = vox + dt * (gfx / safe + gp[G_GX] * ramp)
     vy = voy + dt * (gfy / safe + gp[G_GY])
     sw = gp[G_SIDEWALL] * ramp
-    if sw > 0:
-        # the Coulomb body force 2 μ_w K_w p / W per unit volume, integrated: Σ w V p / m
+    uw = gp[G_SW_SPEED]
+    sw0 = gp[G_SW_SLOW] * ramp if uw > 0 else sw
+    if sw > 0 or sw0 > 0:
+        # the Coulomb body force 2 μ_w K_w p / W per unit volume, integrated: Σ w V p / m, with
+        # μ_w(u) = μ_w0 + (μ_w − μ_w0) u/(u + u_w) when u_w > 0
         act = has & (gvp > 0)
-        dvmax = np.where(act, dt * sw * gvp / safe, 0.0)
         speed = np.hypot(vx, vy)
+        fac = sw0 + (sw - sw0) * speed / (speed + uw) if uw > 0 else sw
+        dvmax = np.where(act, dt * fac * gvp / safe, 0.0)
         f = np.where(speed <= dvmax, 0.0, 1.0 - dvmax / np.where(speed > 0, speed, 1.0))
         vx = np.where(act, vx * f, vx)
         vy = np.where(act, vy * f, vy)
@@ -260,7 +269,7 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
         (1 + dt * L[:, 0, 0]) * (1 + dt * L[:, 1, 1]) - dt**2 * L[:, 0, 1] * L[:, 1, 0]
     )
     eps_new, sig_new, p, gdot, inert, S, cw, nu = material_update_np(
-        mp, L, dt, s["eps"].T, s["J"], s["phi"]
+        mp, L, dt, s["eps"].T, s["J"], s["phi"], s["gf"]
     )
     s["eps"] = eps_new.T.copy()
     s["sig"] = sig_new.T.copy()
@@ -273,6 +282,15 @@ def step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray) -> di
     sc[S_STEP] += 1
     sc[S_DT] = dt
     sc[S_TSEG] += dt
+    if mp[M_KIND] == KIND_FEI2016_NGF:
+        sc[S_TFLU] += dt
+        if sc[S_TFLU] >= mp[M_FLU_DT] * (1.0 - 1e-12):
+            from .fluidity import fluidity_step_np
+
+            s["gf"], _ = fluidity_step_np(x, s["mass"], s["phi"], s["sig"], s["diag"][0],
+                                          s["gf"], gp, mp, sc[S_TFLU])  # fmt: skip
+            sc[S_TFLU] = 0.0
+            sc[S_NFLU] += 1
     sc[S_SMAX] = s["diag"][4].max()
     sc[S_NUMAX] = s["diag"][5].max()
     return s

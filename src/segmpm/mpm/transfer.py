@@ -29,6 +29,8 @@ from .params import (
     G_IMAGES,
     G_PERIODIC,
     G_SIDEWALL,
+    G_SW_SLOW,
+    G_SW_SPEED,
     G_X0,
     G_XHI,
     G_XHI_KIND,
@@ -390,6 +392,8 @@ def grid_update(gp, grid, gv, dt, ramp, sidewall_on):
     gx = gp[G_GX] * ramp
     gy = gp[G_GY]
     sw = gp[G_SIDEWALL] * ramp
+    uw = gp[G_SW_SPEED]
+    sw0 = gp[G_SW_SLOW] * ramp if uw > 0.0 else sw
     for i in prange(nx):
         xn = x0 + i * h
         for j in range(ny):
@@ -403,12 +407,17 @@ def grid_update(gp, grid, gv, dt, ramp, sidewall_on):
             voy = grid[i, j, N_MY] * im
             vx = vox + dt * (grid[i, j, N_FX] * im + gx)
             vy = voy + dt * (grid[i, j, N_FY] * im + gy)
-            if sidewall_on and sw > 0.0:
+            if sidewall_on and (sw > 0.0 or sw0 > 0.0):
                 # Coulomb body force 2 μ_w K_w p / W per unit volume: its Galerkin integral
-                # Σ w V p over the nodal mass is the pressure over density at the node
+                # Σ w V p over the nodal mass is the pressure over density at the node; μ_w may
+                # grow with the speed, μ_w(u) = μ_w0 + (μ_w − μ_w0) u/(u + u_w)
                 vp = grid[i, j, N_VP]
                 if vp > 0.0:
-                    vx, vy = sidewall_friction(vx, vy, dt * sw * vp * im)
+                    f = sw
+                    if uw > 0.0:
+                        s = math.sqrt(vx * vx + vy * vy)
+                        f = sw0 + (sw - sw0) * s / (s + uw)
+                    vx, vy = sidewall_friction(vx, vy, dt * f * vp * im)
             yn = y0 + j * h
             vx, vy = apply_bc(gp, xn, yn, vx, vy)
             # the boundary also constrains the old velocity, so that the FLIP increment on a

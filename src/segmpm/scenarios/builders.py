@@ -38,6 +38,8 @@ from ..mpm.params import (
     G_PERIODIC,
     G_RAMP,
     G_SIDEWALL,
+    G_SW_SLOW,
+    G_SW_SPEED,
     G_TRANSFER,
     G_VISC,
     G_WALL_MU,
@@ -108,8 +110,12 @@ def grid_record(
     gp[G_WALL_MU] = b.wall_friction
     gx, gy = gravity_vector(cfg) if gravity else (0.0, 0.0)
     gp[G_GX], gp[G_GY] = gx, gy
-    if sidewall and b.sidewall_friction > 0:
-        gp[G_SIDEWALL] = 2.0 * b.sidewall_friction * b.wall_normal_stress_ratio / cfg.geometry.width
+    if sidewall and (b.sidewall_friction > 0 or b.sidewall_slip_speed > 0):
+        k = 2.0 * b.wall_normal_stress_ratio / cfg.geometry.width
+        gp[G_SIDEWALL] = k * b.sidewall_friction
+        if b.sidewall_slip_speed > 0:
+            gp[G_SW_SLOW] = k * b.sidewall_friction_slow
+            gp[G_SW_SPEED] = b.sidewall_slip_speed
     gp[G_RAMP] = b.ramp_time
     gp[G_CFL] = cfg.time.cfl
     gp[G_VISC] = cfg.time.viscous_number
@@ -124,12 +130,19 @@ def grid_record(
 
 
 def _initial_strain(cfg: Config, mp: np.ndarray, p_yy: np.ndarray):
-    """Elastic strain (4, N) and J carrying σ_yy = −p_yy in an oedometric state (physics.md §3.6)."""
+    """Elastic strain (4, N) and J carrying σ_yy = −p_yy: oedometric ("geostatic") or isotropic."""
     n = p_yy.shape[0]
     eps = np.zeros((4, n))
     J = np.ones(n)
-    if cfg.material.initial_state != "geostatic":
+    if cfg.material.initial_state == "stress_free":
         return eps, J
+    if cfg.material.initial_state == "isotropic":
+        if mp[M_KIND] != KIND_LINEAR_ELASTIC:
+            I1 = (np.maximum(p_yy, 0.0) / (2.5 * mp[M_A])) ** (2.0 / 3.0)  # p = 2.5 A I₁^{3/2}
+        else:
+            I1 = np.maximum(p_yy, 0.0) / (mp[M_LAMBDA] + 2.0 * mp[M_MU] / 3.0)  # p = K I₁
+        eps[0] = eps[1] = eps[3] = -I1 / 3.0
+        return eps, np.exp(-I1) if mp[M_KIND] != KIND_LINEAR_ELASTIC else J
     if mp[M_KIND] != KIND_LINEAR_ELASTIC:  # the Jiang–Liu energy (local or nonlocal flow rule)
         e = oedometric_strain(p_yy, mp[M_A], mp[M_C])
         J = np.exp(-e)  # I₁ = −ln J = e

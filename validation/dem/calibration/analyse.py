@@ -186,10 +186,52 @@ def fit_hstop(out, mu_s):
                   for r in ok])  # fmt: skip
     Hs = np.array([r["H"] for r in ok])
     A_ls = float(np.sum(x * Hs) / np.sum(x * x)) if len(ok) else math.nan
+    # joint fit of (μ_s, A): H = (π/2) A d̄ / √(tan θ* − μ_s), θ* the bracket's middle
+    joint = {}
+    pts = [r for r in rows if r.get("stopped")]
+    if len(pts) >= 3:
+        th = np.array([math.tan(math.radians(r["theta_mid"])) for r in pts])
+        Hm = np.array([r["H"] for r in pts])
+
+        def model(t, ms, AA):
+            return 0.5 * math.pi * AA * D_BAR / np.sqrt(np.maximum(t - ms, 1e-6))
+
+        p, c = curve_fit(model, th, Hm, p0=(min(th) - 0.02, 0.5),
+                         bounds=([0.0, 0.0], [min(th) - 1e-4, 10.0]))  # fmt: skip
+        # the bracket (0.5°) as an error on θ: refit at both ends
+        ends = []
+        for key in ("theta_stop", "theta_flowing"):
+            t2 = np.array([math.tan(math.radians(r[key])) for r in pts])
+            pe, _ = curve_fit(model, t2, Hm, p0=p, bounds=([0.0, 0.0], [min(t2) - 1e-4, 10.0]))
+            ends.append(pe)
+        joint = dict(mu_s=float(p[0]), A=float(p[1]), se=[float(v) for v in np.sqrt(np.diag(c))],
+                     bracket_ends=[[float(v) for v in e] for e in ends],
+                     rms_residual_m=float(np.sqrt(np.mean((Hm - model(th, *p)) ** 2))))  # fmt: skip
     out["h_stop"] = dict(
+        joint_fit=joint,
         runs=rows, mu_s_used=mu_s, A_per_run=A, A_bracket_lo=lo, A_bracket_hi=hi,
         A_least_squares=A_ls,
         A_se=float(np.std(A, ddof=1) / math.sqrt(len(A))) if len(A) > 1 else math.nan,
+    )  # fmt: skip
+
+
+def fit_ngf_b(out, a, I_max=0.3):
+    """b of the NGF's local law μ = μ_s + b I with μ_s from the h_stop fit: least squares over
+    the steady bins of the inclines that flow well above h_stop (24°, 26°, 28°) with I ≤ I_max (the
+    range of the seed chute; the linear law does not follow the data's curvature beyond)."""
+    js = out["h_stop"].get("joint_fit") or {}
+    if not js:
+        return
+    ms = js["mu_s"]
+    th, I, mu = a[:, 0], a[:, 1], a[:, 2]
+    k = (th >= 24) & (I <= I_max)
+    b = float(np.sum(I[k] * (mu[k] - ms)) / np.sum(I[k] ** 2))
+    res = mu[k] - ms - b * I[k]
+    se = float(np.sqrt(np.sum(res**2) / (k.sum() - 1) / np.sum(I[k] ** 2)))
+    out["ngf"] = dict(
+        mu_s=ms, mu_s_se=js["se"][0], A=js["A"], A_se=js["se"][1], b=b, b_se=se,
+        b_fit_range=f"inclines 24-28 deg, I <= {I_max}", b_rms_residual=float(np.sqrt(np.mean(res**2))),
+        t0_s=1.0e-3, t0_source="literature (not calibrated: steady flows do not depend on it)",
     )  # fmt: skip
 
 
@@ -325,6 +367,7 @@ def main() -> int:
     fit_walls(out)
     mu_s = out["mu_of_I"]["linear"]["mu_s"]
     fit_hstop(out, mu_s)
+    fit_ngf_b(out, a)
     fit_F(out)
     fit_segregation(out)
     (HERE / "calibration.json").write_text(json.dumps(out, indent=1))
@@ -336,7 +379,8 @@ def main() -> int:
     print(f"mu(I): mu_s = {lin['mu_s']:.4f} ± {lin['mu_s_se']:.4f}, b = {lin['b']:.4f} ± {lin['b_se']:.4f}")
     for k, v in out["wall_friction"].items():
         print(f"{k}: mu_0 {v['mu_0']:.3f} mu_inf {v['mu_inf']:.3f} u_w {v['u_w']:.4f} K_w {v['K_w_mean']:.3f}")
-    print("h_stop A:", out["h_stop"]["A_least_squares"], out["h_stop"]["A_per_run"])
+    print("h_stop joint:", out["h_stop"].get("joint_fit"))
+    print("ngf:", out.get("ngf"))
     print("F:", out["fluctuation"])
     print("segregation:", json.dumps(out["segregation"], indent=1))
     return 0
