@@ -427,3 +427,26 @@ def plot(out, a):
 if __name__ == "__main__":
     os.chdir(HERE)
     sys.exit(main())
+
+
+def export_reference(name: str, times=(0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0)) -> Path:
+    """The run's binned profiles as a ``compare`` reference CSV (``runs/NAME/reference_profiles.csv``):
+    each time T the 0.5 s window ending at T, slabs of 0.5 mm (centre binning), y from the datum."""
+    meta, F = load(name)
+    path = RUNS / name / "reference_profiles.csv"
+    with open(path, "w") as fh:
+        fh.write(f"# DEM calibration run {name} (validation/dem/calibration), binned diag_z\n")
+        fh.write("# y_m from the datum (mean top of the glued layer); window: the 0.5 s ending at time_s\n")
+        fh.write("time_s,y_m,phi_small,velocity_x,solid_fraction,pressure,stress_ratio,fluidity\n")
+        for T in times:
+            k = np.where(np.abs(F["time"] - T) < 1e-6)[0]
+            if not len(k):
+                continue
+            k = k[0]
+            for i, z in enumerate(F["zeta"]):
+                if not (F["solid_fraction"][k, i] > 0.05):
+                    continue
+                fh.write(f"{T:g},{z:.5f},{F['phi_small'][k, i]:.5f},{F['u'][k, i]:.6f},"
+                         f"{F['solid_fraction'][k, i]:.4f},{F['p'][k, i]:.3f},{F['mu'][k, i]:.4f},"
+                         f"{F['g'][k, i]:.4f}\n")  # fmt: skip
+    return path
