@@ -25,9 +25,11 @@ from segmpm.simulation import Simulation
 
 def main() -> int:
     n_req = int(sys.argv[1]) if len(sys.argv) > 1 else 32000
-    numba.set_num_threads(int(sys.argv[2]) if len(sys.argv) > 2 else 1)
+    nt = int(sys.argv[2]) if len(sys.argv) > 2 else 1
     sim = Simulation(_config_for(n_req))
+    sim.threads = nt
     sim.advance(1.0, 60)
+    numba.set_num_threads(nt)  # for the kernels called directly below
     st, w = sim.state, sim.state.work
     x, v, C, J, eps, sig, diag = st.x, st.v, st.C, st.J, st.eps, st.sig, st.diag
     dt = float(st.sc[S_DT])  # the last stable step

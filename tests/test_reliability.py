@@ -167,8 +167,9 @@ def test_results_do_not_depend_on_thread_count():
         pytest.skip("needs at least 2 numba threads")
     states = []
     for threads in (1, 2):
-        numba.set_num_threads(threads)
-        sim = make_sim(["geometry.depth=0.006", "geometry.length=0.004"])
+        sim = make_sim(["geometry.depth=0.006", "geometry.length=0.004",
+                        f"grid.threads={threads}"])  # fmt: skip
+        assert sim.threads == threads
         sim.advance_to(0.05)
         states.append({k: v.copy() for k, v in sim.state.arrays().items()})
     numba.set_num_threads(1)  # back to the suite default (conftest)
@@ -212,3 +213,52 @@ def test_diagnostics_are_those_of_the_last_step_of_a_call():
     two.advance(t, 10_000)
     assert abs(two.time - t) < 1e-15
     assert two.state.diag[4].max() == two.state.sc[S_SMAX]
+
+
+def test_thread_policy_and_layer_recorded(tmp_path):
+    """grid.threads = "auto" runs a small state serially, an integer is used as given; run.json
+    records the count, why, and the threading layer (workqueue unless NUMBA_THREADING_LAYER)."""
+    import os
+
+    from segmpm import threads as T
+
+    assert T.resolve("auto", 596) == (1, f"auto: 596 points < {T.SERIAL_BELOW} (serial below)")
+    n, why = T.resolve("auto", 10 * T.SERIAL_BELOW)
+    assert 1 <= n <= T.available_cores() and why.startswith("auto:")
+    assert T.resolve(1, 10**6)[0] == 1
+    assert main(["run", "--out", str(tmp_path), *_args("time.end=0.01",
+                 "output.profile_times=[0.0]", "output.checkpoint_interval=0")]) == 0  # fmt: skip
+    info = json.loads((tmp_path / "run.json").read_text())
+    assert info["threads"] == 1 and "serial below" in info["threads_policy"]
+    want = os.environ.get("NUMBA_THREADING_LAYER", "workqueue")
+    assert info["threading_layer"] == want
+
+
+def test_threads_of_one_process_may_run_simulations_at_once():
+    """Two threads of one process advancing two simulations at once (a dask worker with
+    threads_per_worker > 1): the compiled loop is serialised, not aborted, and each result equals
+    the same run done alone."""
+    import threading
+
+    over = ["geometry.depth=0.004", "geometry.length=0.002", "grid.threads=2"]
+    alone = make_sim(over)
+    for k in range(1, 5):
+        alone.advance_to(0.005 * k)
+    sims = [make_sim(over), make_sim(over)]
+    errors = []
+
+    def go(s):
+        try:
+            for k in range(1, 5):
+                s.advance_to(0.005 * k)
+        except Exception as exc:  # noqa: BLE001
+            errors.append(exc)
+
+    ts = [threading.Thread(target=go, args=(s,)) for s in sims]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join()
+    assert not errors
+    for s in sims:
+        np.testing.assert_array_equal(s.state.x, alone.state.x)

@@ -113,7 +113,7 @@ def bench_size(
     n = sim.state.n
     first: dict[int, float] = {}
     for t in threads:
-        numba.set_num_threads(t)
+        sim.threads = t  # the simulation sets numba's thread count on every call
         t0 = time.perf_counter()
         sim.advance(1.0, 1)  # compiles (or loads the cache) on the first thread count
         first[t] = time.perf_counter() - t0
@@ -124,7 +124,7 @@ def bench_size(
     try:
         for _ in range(max(1, repeats)):
             for t in threads:
-                numba.set_num_threads(t)
+                sim.threads = t
                 w0, s0 = sim.wall_time, sim.steps
                 sim.advance(1.0, steps)
                 if sim.steps - s0 != steps:
@@ -202,6 +202,129 @@ def run_bench(
             "max_threads": max_threads,
         },  # fmt: skip
         "results": results,
+    }
+    if json_out:
+        write_json(json_out, doc)
+    return 0
+
+
+# ---------------------------------------------------------------------------------- contention
+def _busy_process(core: int | None) -> subprocess.Popen:
+    """A competing busy loop (another user's job), pinned to ``core`` when given."""
+    code = "while True:\n    pass\n"
+    p = subprocess.Popen([sys.executable, "-c", code])
+    if core is not None:
+        try:
+            import os
+
+            os.sched_setaffinity(p.pid, {core})
+        except (AttributeError, OSError):
+            pass
+    return p
+
+
+def bench_contended(sizes: list[int], threads: list[int], steps: int, repeats: int = 5,
+                    seed_end: float = 1.0) -> dict[str, Any]:  # fmt: skip
+    """The step with and without one competing busy process (pinned to the last core), for each
+    thread count and size, in one run: rounds alternate an idle block and a contended block, and
+    the slowdown is the median of the within-round ratios. Then the default seed case (``segmpm
+    run`` to ``seed_end``) alone, beside the busy process, and two such runs started together."""
+    import os
+
+    try:
+        cores = sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = list(range(os.cpu_count() or 1))
+    busy_core = cores[-1] if len(cores) > 1 else None
+    from .simulation import Simulation
+
+    rows = []
+    for n_req in sizes:
+        sim = Simulation(_config_for(n_req))
+        n = sim.state.n
+        st = max(steps, int(4e6 / max(n, 1)))  # blocks of ≥ 4e6 particle-steps
+        for t in threads:
+            sim.threads = t
+            sim.advance(1.0, 10)
+        sim.advance(1.0, max(10, st // 10))
+        idle: dict[int, list[float]] = {t: [] for t in threads}
+        cont: dict[int, list[float]] = {t: [] for t in threads}
+        for _ in range(max(1, repeats)):
+            for t in threads:
+                sim.threads = t
+                w0 = sim.wall_time
+                sim.advance(1.0, st)
+                idle[t].append(sim.wall_time - w0)
+            busy = _busy_process(busy_core)
+            time.sleep(0.3)
+            try:
+                for t in threads:
+                    sim.threads = t
+                    w0 = sim.wall_time
+                    sim.advance(1.0, st)
+                    cont[t].append(sim.wall_time - w0)
+            finally:
+                busy.kill()
+                busy.wait()
+        for t in threads:
+            rows.append({"n_points": n, "threads": t, "steps_per_block": st,
+                         "idle": summarize(n, st, idle[t]), "contended": summarize(n, st, cont[t]),
+                         "slowdown": _paired(cont[t], idle[t])})  # fmt: skip
+    # the default run as a user starts it: alone, beside a busy process, and two at once
+    def seed_run(tag: str) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-m", "segmpm.cli", "run", "--out",
+                                 f"/tmp/segmpm-bench-{os.getpid()}-{tag}", "--set",
+                                 f"time.end={seed_end}", "--set", "output.fields=false",
+                                 "--set", "output.figures=false", "--set", "output.progress=false"],
+                                stderr=subprocess.DEVNULL)  # fmt: skip
+
+    def timed(procs: list[subprocess.Popen]) -> float:
+        t0 = time.perf_counter()
+        for p in procs:
+            p.wait()
+        return time.perf_counter() - t0
+
+    seed_run("warm").wait()  # compile cache warm, first-run effects out of the timing
+    runs = {"alone": [], "beside_busy": [], "two_together": []}
+    for r in range(max(1, min(repeats, 3))):
+        runs["alone"].append(timed([seed_run(f"a{r}")]))
+        busy = _busy_process(busy_core)
+        time.sleep(0.3)
+        try:
+            runs["beside_busy"].append(timed([seed_run(f"b{r}")]))
+        finally:
+            busy.kill()
+            busy.wait()
+        runs["two_together"].append(timed([seed_run(f"c{r}"), seed_run(f"d{r}")]))
+    seed = {k: statistics.median(v) for k, v in runs.items()}
+    seed.update({"all": runs, "slowdown_beside_busy": seed["beside_busy"] / seed["alone"],
+                 "slowdown_two_together": seed["two_together"] / seed["alone"],
+                 "time_end_s": seed_end})  # fmt: skip
+    return {"step": rows, "seed_run_wall_s": seed, "busy_core": busy_core, "cores": cores}
+
+
+def run_contended(sizes: list[int], threads: list[int], steps: int, json_out: str | None,
+                  repeats: int = 5) -> int:  # fmt: skip
+    """``segmpm bench --contended``: print and optionally write :func:`bench_contended`."""
+    from .threads import threading_layer
+
+    res = bench_contended(sizes, threads, steps, repeats)
+    print(f"segmpm {__version__} bench --contended: one busy process pinned to core "
+          f"{res['busy_core']}; threading layer {threading_layer()}")  # fmt: skip
+    print(f"{'points':>8} {'threads':>7} {'idle ns/pst':>12} {'busy ns/pst':>12} {'slowdown':>9}")
+    for r in res["step"]:
+        print(f"{r['n_points']:>8} {r['threads']:>7} {r['idle']['ns_per_particle_step']:>12.1f} "
+              f"{r['contended']['ns_per_particle_step']:>12.1f} {r['slowdown']:>9.2f}")  # fmt: skip
+    s = res["seed_run_wall_s"]
+    print(f"default seed run to t = {s['time_end_s']:g} s (wall, median): alone {s['alone']:.2f} s, "
+          f"beside a busy process {s['beside_busy']:.2f} s ({s['slowdown_beside_busy']:.2f}x), "
+          f"two together {s['two_together']:.2f} s ({s['slowdown_two_together']:.2f}x)")  # fmt: skip
+    doc = {
+        "segmpm_version": __version__,
+        "threading_layer": threading_layer(),
+        "machine": {"python": platform.python_version(), "processor": platform.processor(),
+                    "numba": numba.__version__, "cores": res["cores"]},  # fmt: skip
+        **res,
     }
     if json_out:
         write_json(json_out, doc)

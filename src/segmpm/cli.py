@@ -69,6 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="timed blocks per case (the median is reported)")  # fmt: skip
     p.add_argument("--json", dest="json_out", help="write the results to this JSON file")
     p.add_argument("--no-peer", action="store_true", help="skip the Taichi mpm88 peer")
+    p.add_argument("--contended", action="store_true",
+                   help="the step idle and beside a busy process, and the default run alone, "
+                   "beside it and two at once (default sizes: 596 and 32000)")  # fmt: skip
     return ap
 
 
@@ -115,8 +118,11 @@ def _dispatch(args: argparse.Namespace) -> int:
 
         return run_sweep(args.sweep, args.out, args.scheduler, args.workers)
     if args.command == "bench":
-        from .bench import run_bench
+        from .bench import run_bench, run_contended
 
+        if args.contended:
+            sizes = args.sizes if args.sizes != [8000, 32000] else [596, 32000]
+            return run_contended(sizes, args.threads, args.steps, args.json_out, args.repeats)
         return run_bench(
             args.sizes, args.threads, args.steps, args.json_out, not args.no_peer, args.repeats
         )
@@ -142,13 +148,10 @@ def _run(args: argparse.Namespace) -> int:
     else:
         cfg = load_config(args.config, args.overrides)
         out = Path(args.out) if args.out else Path(cfg.output.dir)
-    if cfg.grid.threads:
-        import numba
-
-        numba.set_num_threads(min(cfg.grid.threads, numba.config.NUMBA_NUM_THREADS))
     sim = Simulation(cfg, out_dir=out)
     print(f"segmpm {__version__}: {cfg.scenario.kind}, {sim.state.n} material points, "
-          f"t_end = {cfg.time.end:g} s → {out}", file=sys.stderr)  # fmt: skip
+          f"t_end = {cfg.time.end:g} s, {sim.threads} thread(s) ({sim.threads_reason}) → {out}",
+          file=sys.stderr)  # fmt: skip
     res = sim.run(resume=args.resume, progress=False if args.no_progress else None)
     info = res.info
     pps = info.get("particle_steps_per_second")

@@ -76,8 +76,10 @@ class GridConfig(_Section):
     transfer: Literal["aflip", "apic", "flip"] = "aflip"
     #: FLIP fraction α of the velocity update (transfer = "aflip" or "flip").
     flip_fraction: Fraction = 0.99
-    #: threads for the compiled loop (0 = numba's default). Results do not depend on it.
-    threads: Annotated[int, Field(ge=0, le=256)] = 0
+    #: threads of the compiled loop: "auto" (one below 20 000 points, else the cores this process
+    #: may use that no other process keeps busy; segmpm.threads) or a count (0 = numba's pool).
+    #: Results do not depend on it.
+    threads: Annotated[int, Field(ge=0, le=256)] | Literal["auto"] = "auto"
 
 
 class MaterialConfig(_Section):

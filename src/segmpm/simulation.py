@@ -43,6 +43,7 @@ from .mpm.params import (
 from .mpm.step import advance, prime
 from .scenarios import build
 from .state import D_SPEED, STATE_ARRAYS, State
+from .threads import threading_layer
 
 EXIT_OK = 0
 EXIT_INVALID = 2
@@ -88,6 +89,11 @@ class Simulation:
         self.config = config if config is not None else load_config()
         self.out_dir = Path(out_dir if out_dir is not None else self.config.output.dir)
         self.state: State = build(self.config)
+        from . import threads as _threads
+
+        #: thread count of the compiled loop and why (``grid.threads``; segmpm.threads)
+        self.threads, self.threads_reason = _threads.resolve(self.config.grid.threads,
+                                                             self.state.n)  # fmt: skip
         self._initial = self._invariants()
         self._primed = False
         self._failed: tuple[int, int] | None = None
@@ -130,6 +136,13 @@ class Simulation:
                 + self._failure_message(status, idx),
                 self._diagnostic(status, idx),
             )
+        from .threads import KERNEL_LOCK
+
+        with KERNEL_LOCK:
+            numba.set_num_threads(self.threads)
+            return self._advance_locked(t_stop, max_steps)
+
+    def _advance_locked(self, t_stop: float, max_steps: int) -> tuple[int, int, int]:
         self._prime()
         st, w = self.state, self.state.work
         t0 = _time.perf_counter()
@@ -361,6 +374,9 @@ class Simulation:
             "last_dt": float(self.state.sc[S_DT]),
             "conservation": self.conservation(),
             "segregation": self.segregation_diagnostics(),
+            "threads": self.threads,
+            "threads_policy": self.threads_reason,
+            "threading_layer": threading_layer(),
             "concentration_steps": int(self.state.sc[S_NSEG]),
             "fluidity_updates": int(self.state.sc[S_NFLU]),
             "rheology": self.config.material.rheology,

@@ -20,7 +20,8 @@ checkpoint is resumed; any other member runs from the start.
 Members run on a ``LocalCluster(n_workers=N, threads_per_worker=1, processes=True)`` (N = --workers,
 default 2, at most the number of members to run) or on the scheduler given by ``--scheduler``
 (whose workers must have segmpm installed and see OUT at the same path). Each member uses one
-numba thread (``grid.threads`` of the configuration is ignored inside a sweep).
+numba thread (``grid.threads`` of the configuration is set to 1 inside a sweep, and ``run.json``
+says so).
 
 ``OUT/ensemble.nc`` gathers the members' ``profiles.nc`` along a ``member`` dimension (outer join
 on ``time`` and ``y``, NaN where a member has no value), with one coordinate per swept parameter
@@ -221,6 +222,8 @@ def run_member(config: dict[str, Any], out_dir: str, resume: bool) -> dict[str, 
         numba.set_num_threads(1)
         from .simulation import Simulation
 
+        # one thread per member (one member per core), recorded as such in its run.json
+        config = {**config, "grid": {**config.get("grid", {}), "threads": 1}}
         cfg = validate_data(config)
         res = Simulation(cfg, out_dir=out_dir).run(resume=resume, progress=False)
         info = res.info
