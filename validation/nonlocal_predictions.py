@@ -12,7 +12,8 @@ docs/calibration.md), none from the cases predicted here:
   of the calibration itself, not predictions).
 
 Models (``MODELS``): ``local_default`` (the present default preset), ``local_calibrated`` (local
-μ(I) fitted to the inclines, measured wall law, seed Eq. 6 with driver B), ``nonlocal_lh``
+μ(I) fitted to the inclines, measured wall law, seed Eq. 6 with driver B), ``local_lh`` (the same
+with the liu_henann closure), ``nonlocal_lh``
 (nonlocal granular fluidity + the liu_henann closure), ``nonlocal_htf`` (nonlocal + the Hill–Tan
 flux with the fluidity's kinetic stress) and ``nonlocal_B`` (nonlocal + the seed's Eq. 6, driver B).
 
@@ -69,16 +70,24 @@ def model_overrides(cal: dict, model: str, mu_gw: float | None) -> dict[str, obj
             o = {"boundary.sidewall_friction": 0.0}
         return o
     lin = cal["mu_of_I"]["linear"]
-    ngf = cal["ngf"]
+    # the NGF set fitted to the incline profiles and the h_stop brackets together
+    # (docs/calibration.md §3); "ngf" is h_stop alone
+    ngf = {**cal["ngf_profiles"], "t0_s": cal["ngf"]["t0_s"]}
     seg = cal["segregation"]
+    rc = 0.95
+    local = {
+        **walls,
+        # q_c = q_φ 2 r_c/(1 + r_c²) = μ_s of the linear fit, a = its b
+        "material.q_phi": lin["mu_s"] * (1 + rc * rc) / (2 * rc),
+        "material.a": lin["b"],
+    }
+    c_lh = seg["lh"]["coefficients"]
+    lh = {"segregation.model": "liu_henann", "segregation.lh_C_seg": c_lh["C_seg"],
+          "segregation.lh_C_p": c_lh["C_p"], "segregation.lh_C_diff": c_lh["C_diff"]}  # fmt: skip
     if model == "local_calibrated":
-        rc = 0.95
-        return {
-            **walls,
-            # q_c = q_φ 2 r_c/(1 + r_c²) = μ_s of the linear fit, a = its b
-            "material.q_phi": lin["mu_s"] * (1 + rc * rc) / (2 * rc),
-            "material.a": lin["b"],
-        }
+        return local
+    if model == "local_lh":
+        return {**local, **lh}
     nonlocal_ = {
         **walls,
         "material.rheology": "nonlocal",
@@ -89,9 +98,7 @@ def model_overrides(cal: dict, model: str, mu_gw: float | None) -> dict[str, obj
         "material.fluidity_time": ngf["t0_s"],
     }
     if model == "nonlocal_lh":
-        c = seg["lh"]["coefficients"]
-        return {**nonlocal_, "segregation.model": "liu_henann", "segregation.lh_C_seg": c["C_seg"],
-                "segregation.lh_C_p": c["C_p"], "segregation.lh_C_diff": c["C_diff"]}  # fmt: skip
+        return {**nonlocal_, **lh}
     if model == "nonlocal_htf":
         c = seg["ht"]["coefficients"]
         c_D = 6.8
@@ -107,7 +114,8 @@ def model_overrides(cal: dict, model: str, mu_gw: float | None) -> dict[str, obj
     raise KeyError(model)
 
 
-MODELS = ["local_default", "local_calibrated", "nonlocal_lh", "nonlocal_htf", "nonlocal_B"]
+MODELS = ["local_default", "local_calibrated", "local_lh", "nonlocal_lh", "nonlocal_htf",
+          "nonlocal_B"]
 
 CASES = {
     "seed": dict(ref=HERE / "dem" / "reference_profiles.csv", mu_gw=0.3, over={}, end=20.0,

@@ -40,6 +40,8 @@ class NGFParameters:
     gravity: float = 9.81
     beta: float = 0.0  #: μ_w K_w / W, 1/m (0: no sidewalls)
     p_min: float = 0.0  #: floor of p in the g² term, Pa
+    #: optional (ζ, d̄(ζ)) of a segregated layer: d̄ interpolated on the nodes instead of ``dbar``
+    dbar_profile: tuple[np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def from_config(cls, cfg: Config) -> NGFParameters:
@@ -88,9 +90,14 @@ def steady_chute(prm: NGFParameters, n: int = 4000) -> dict[str, np.ndarray]:
         )
     rho = prm.solid_fraction * prm.rho_s
     gc = rho * prm.gravity * math.cos(th)
-    d = prm.dbar
     dz = H / n
     z = (np.arange(n) + 0.5) * dz
+    if prm.dbar_profile is not None:
+        zp, dp = (np.asarray(a, dtype=float) for a in prm.dbar_profile)
+        o = np.argsort(zp)
+        d = np.interp(z, zp[o], dp[o])
+    else:
+        d = np.full(n, float(prm.dbar))
     mu = math.tan(th) - prm.beta * z
     p = gc * z
     lam = mu - prm.mu_s
@@ -105,17 +112,21 @@ def steady_chute(prm: NGFParameters, n: int = 4000) -> dict[str, np.ndarray]:
         curved = np.where(hi > a, 2.0 * (np.sqrt(hi) - np.sqrt(np.minimum(a, hi))), 0.0)
         inv_sqrt = (flat / math.sqrt(zm) + curved) / dz
     c2 = prm.b * mu * d * np.sqrt(prm.rho_s / gc) * inv_sqrt
-    D = (prm.A * d) ** 2 / dz**2
+    D = (prm.A * d) ** 2 / dz**2  # per node (d̄ may vary); the face value is the mean
     gl = np.where(lam > 0, lam / c2, 0.0)
     g = np.maximum(gl, 1e-3 * max(gl.max(), 1.0))
 
+    Df = 0.5 * (D[1:] + D[:-1])  # face coefficients between nodes i and i+1
+
     def residual(g):
-        lap = np.empty_like(g)
-        lap[1:-1] = g[2:] - 2 * g[1:-1] + g[:-2]
-        lap[0] = g[1] - g[0]  # mirror: g_{-1} = g_0
+        flux = Df * (g[1:] - g[:-1])
+        lap = np.zeros_like(g)
+        lap[:-1] += flux
+        lap[1:] -= flux
         # the base ζ = H lies half a node below the last node: g(H) = 0 by g_n = −g_{n−1}
-        lap[-1] = -3 * g[-1] + g[-2]
-        return D * lap + lam * g - c2 * g * g
+        lap[-1] += D[-1] * (-2 * g[-1])
+        # the surface: mirror g_{-1} = g_0, no flux
+        return lap + lam * g - c2 * g * g
 
     scale = max(float(np.abs(lam * gl).max()), 1e-30)
     dtau = 1e-3 / max(float(np.abs(lam).max()), 1e-12)
@@ -124,13 +135,14 @@ def steady_chute(prm: NGFParameters, n: int = 4000) -> dict[str, np.ndarray]:
         for _ in range(30):
             r = (g - g_old) / dtau - residual(g)
             # Jacobian of r: 1/dτ − (D L + diag(λ − 2 c₂ g))
-            diag = 1 / dtau + 2 * D - lam + 2 * c2 * g
-            diag[0] = 1 / dtau + D - lam[0] + 2 * c2[0] * g[0]
-            diag[-1] = 1 / dtau + 3 * D - lam[-1] + 2 * c2[-1] * g[-1]
+            diag = 1 / dtau - lam + 2 * c2 * g
+            diag[:-1] += Df
+            diag[1:] += Df
+            diag[-1] += 2 * D[-1]
             ab = np.zeros((3, n))
-            ab[0, 1:] = -D
+            ab[0, 1:] = -Df
             ab[1] = diag
-            ab[2, :-1] = -D
+            ab[2, :-1] = -Df
             dg = solve_banded((1, 1), ab, -r)
             g = np.maximum(g + dg, 0.0)
             if np.max(np.abs(dg)) <= 1e-13 * max(float(g.max()), 1e-30):

@@ -235,6 +235,68 @@ def fit_ngf_b(out, a, I_max=0.3):
     )  # fmt: skip
 
 
+def fit_ngf_profiles(out, n_nodes=800):
+    """(μ_s, b, A) of the NGF fitted jointly to the steady velocity profiles of the four inclines
+    (steady 1-D solve of segmpm.analysis.ngf_reference with the DEM's d̄(ζ), no sidewalls, the
+    pressure floor of one grain layer) and to the h_stop brackets: residuals (u_model − u_DEM)/u_s
+    at the DEM bins, and (H_stop(θ*) − H)/H of each stopped layer. scipy least_squares;
+    uncertainties from the Gauss–Newton covariance J^T J at the optimum, scaled by the residual
+    variance."""
+    from scipy.optimize import least_squares
+
+    from segmpm.analysis.ngf_reference import NGFParameters, steady_chute
+
+    p_min = 0.6 * B.RHO_S * 9.81 * D_BAR  # one grain layer, as material.fluidity_floor_layers = 1
+    profs = []
+    for th in (22, 24, 26, 28):
+        name = f"incline_{th}"
+        if not (RUNS / name / "case.json").exists():
+            continue
+        _, F = load(name)
+        P, H = steady(F)
+        sel = (P["zeta"] > 0.0) & (P["zeta"] < H) & np.isfinite(P["u"])
+        y = P["zeta"][sel]
+        profs.append(dict(theta=th, H=H, y=y, u=P["u"][sel], us=float(np.nanmax(P["u"][sel])),
+                          dbar=(H - y, P["dbar"][sel])))  # fmt: skip
+    stops = [r for r in out["h_stop"]["runs"] if r.get("stopped")]
+
+    def residuals(x):
+        ms, b, A = x
+        res = []
+        for pr in profs:
+            prm = NGFParameters(pr["theta"], pr["H"], ms, b, A, D_BAR, p_min=p_min,
+                                dbar_profile=pr["dbar"])  # fmt: skip
+            try:
+                r = steady_chute(prm, n_nodes)
+                um = np.interp(pr["y"], r["y"][::-1], r["u"][::-1])
+            except (RuntimeError, ValueError):
+                um = np.zeros_like(pr["u"])
+            res.append((um - pr["u"]) / pr["us"])
+        for r in stops:
+            ex = math.tan(math.radians(r["theta_mid"])) - ms
+            hs = 0.5 * math.pi * A * D_BAR / math.sqrt(ex) if ex > 1e-6 else 10 * r["H"]
+            res.append(np.array([(hs - r["H"]) / r["H"]]))
+        return np.concatenate(res)
+
+    js = out["h_stop"].get("joint_fit") or {}
+    x0 = [js.get("mu_s", 0.36), out.get("ngf", {}).get("b", 0.5), js.get("A", 0.5)]
+    sol = least_squares(residuals, x0, bounds=([0.30, 0.05, 0.02], [0.40, 3.0, 3.0]),
+                        diff_step=1e-3)  # fmt: skip
+    J = sol.jac
+    dof = max(len(sol.fun) - 3, 1)
+    s2 = float(np.sum(sol.fun**2) / dof)
+    cov = s2 * np.linalg.pinv(J.T @ J)
+    n_prof = sum(len(p["y"]) for p in profs)
+    out["ngf_profiles"] = dict(
+        mu_s=float(sol.x[0]), b=float(sol.x[1]), A=float(sol.x[2]),
+        se=[float(v) for v in np.sqrt(np.diag(cov))],
+        correlation=(cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)))).round(3).tolist(),
+        rms_velocity_residual=float(np.sqrt(np.mean(sol.fun[:n_prof] ** 2))),
+        hstop_relative_residuals=[float(v) for v in sol.fun[n_prof:]],
+        data="steady incline profiles (22-28 deg, t 4-8 s) and the h_stop brackets",
+    )  # fmt: skip
+
+
 # ------------------------------------------------------------------------------------- F of δv
 def fit_F(out):
     X, Y = [], []
@@ -368,6 +430,7 @@ def main() -> int:
     mu_s = out["mu_of_I"]["linear"]["mu_s"]
     fit_hstop(out, mu_s)
     fit_ngf_b(out, a)
+    fit_ngf_profiles(out)
     fit_F(out)
     fit_segregation(out)
     (HERE / "calibration.json").write_text(json.dumps(out, indent=1))
@@ -381,6 +444,7 @@ def main() -> int:
         print(f"{k}: mu_0 {v['mu_0']:.3f} mu_inf {v['mu_inf']:.3f} u_w {v['u_w']:.4f} K_w {v['K_w_mean']:.3f}")
     print("h_stop joint:", out["h_stop"].get("joint_fit"))
     print("ngf:", out.get("ngf"))
+    print("ngf (profiles + h_stop):", out.get("ngf_profiles"))
     print("F:", out["fluctuation"])
     print("segregation:", json.dumps(out["segregation"], indent=1))
     return 0
@@ -414,10 +478,13 @@ def plot(out, a):
     h = out["h_stop"]
     ok = [r for r in h["runs"] if r.get("stopped")]
     ax[2].plot([r["theta_mid"] for r in ok], [1e3 * r["H"] for r in ok], "o", label="DEM")
-    th = np.linspace(20, 28, 100)
-    ex = np.tan(np.radians(th)) - h["mu_s_used"]
-    Hs = np.where(ex > 0, 0.5 * np.pi * h["A_least_squares"] * D_BAR / np.sqrt(np.abs(ex)), np.nan)
-    ax[2].plot(th, 1e3 * Hs, "k-", label=f"NGF, A = {h['A_least_squares']:.3f}")
+    th = np.linspace(19, 28, 200)
+    j = h["joint_fit"]
+    ex = np.tan(np.radians(th)) - j["mu_s"]
+    Hs = np.where(ex > 0, 0.5 * np.pi * j["A"] * D_BAR / np.sqrt(np.abs(ex)), np.nan)
+    ax[2].plot(th, 1e3 * Hs, "k-", label=f"NGF fit: μ_s = {j['mu_s']:.3f}, A = {j['A']:.2f}")
+    ax[2].errorbar([r["theta_mid"] for r in ok], [1e3 * r["H"] for r in ok], xerr=0.25, fmt="none",
+                   ecolor="C0")
     ax[2].set(xlabel="θ (°)", ylabel="H_stop (mm)", ylim=(0, 40), title="h_stop")
     ax[2].legend(fontsize=7)
     fig.tight_layout()
