@@ -89,3 +89,22 @@ def test_help_and_version(capsys):
     assert main(["--help"]) == 0
     assert "segmpm" in capsys.readouterr().out
     assert main([]) == 0
+
+
+def test_a_file_extends_a_preset_or_another_file(tmp_path):
+    from segmpm.config import ConfigError, load_config
+
+    (tmp_path / "a.toml").write_text('extends = "chute_seed"\n[time]\nend = 0.05\n')
+    a = load_config(tmp_path / "a.toml")
+    assert a.time.end == 0.05 and a.geometry.length == 0.001  # the preset's strip, not 12 mm
+    (tmp_path / "b.toml").write_text('extends = "a.toml"\n[geometry]\nslope_deg = 24.0\n')
+    b = load_config(tmp_path / "b.toml")
+    assert b.time.end == 0.05 and b.geometry.slope_deg == 24.0
+    (tmp_path / "c.toml").write_text("[time]\nend = 0.05\n")
+    assert load_config(tmp_path / "c.toml").geometry.length == 0.012  # no extends: the schema
+    (tmp_path / "d.toml").write_text('extends = "nope"\n')
+    with pytest.raises(ConfigError, match="no such preset"):
+        load_config(tmp_path / "d.toml")
+    (tmp_path / "e.toml").write_text('extends = "e.toml"\n')
+    with pytest.raises(ConfigError, match="levels of extends"):
+        load_config(tmp_path / "e.toml")

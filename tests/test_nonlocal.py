@@ -259,3 +259,27 @@ def test_nonlocal_checkpoint_resume_is_bit_identical(tmp_path):
     for k, v in a.state.arrays().items():
         np.testing.assert_array_equal(v, c.state.arrays()[k], err_msg=k)
     assert a.state.gf.max() > 0
+
+
+def test_calibrated_example_matches_the_calibration():
+    """examples/chute_nonlocal.toml carries the values of the DEM calibration
+    (validation/dem/calibration/calibration.json, the adopted NGF set and the wall law of
+    grain-wall friction 0.3) to the digits it prints, and extends the default preset."""
+    import json
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    cal = json.loads((root / "validation/dem/calibration/calibration.json").read_text())
+    cfg = load_config(root / "examples/chute_nonlocal.toml")
+    ngf, wall = cal["ngf_profiles"], cal["wall_friction"]["wall_mu030"]
+    lh = cal["segregation"]["lh"]["coefficients"]
+    m, b, s = cfg.material, cfg.boundary, cfg.segregation
+    pairs = [(m.static_friction, ngf["mu_s"]), (m.rate_sensitivity, ngf["b"]),
+             (m.nonlocal_amplitude, ngf["A"]), (b.sidewall_friction, wall["mu_inf"]),
+             (b.sidewall_friction_slow, wall["mu_0"]), (b.sidewall_slip_speed, wall["u_w"]),
+             (b.wall_normal_stress_ratio, wall["K_w_mean"]), (s.lh_C_seg, lh["C_seg"]),
+             (s.lh_C_p, lh["C_p"]), (s.lh_C_diff, lh["C_diff"])]  # fmt: skip
+    for got, want in pairs:
+        assert got == pytest.approx(want, rel=1e-4)
+    assert cfg.material.rheology == "nonlocal" and cfg.segregation.model == "liu_henann"
+    assert cfg.geometry.length == 0.001 and cfg.material.stiffness_scale == 1e-3  # the preset's

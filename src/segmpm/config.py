@@ -538,14 +538,75 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"configuration file {str(p)!r} cannot be read: {err}") from None
 
 
+def preset_names() -> list[str]:
+    """The built-in presets a file may ``extends``."""
+    from importlib import resources
+
+    return sorted(p.name[:-5] for p in resources.files("segmpm").joinpath("presets").iterdir()
+                  if p.name.endswith(".toml"))  # fmt: skip
+
+
+def preset_data(name: str) -> dict[str, Any]:
+    """The raw data of the built-in preset ``name`` (``presets/NAME.toml``)."""
+    from importlib import resources
+
+    if name not in preset_names():
+        raise ConfigError(
+            f"extends = {name!r}: no such preset; allowed: {', '.join(preset_names())} "
+            "or the path of a TOML file"
+        )
+    return tomllib.loads(resources.files("segmpm").joinpath(f"presets/{name}.toml").read_text())
+
+
+def resolve_extends(data: dict[str, Any], base_dir: Path | None, depth: int = 0) -> dict[str, Any]:
+    """Merge a configuration that names a base (top-level ``extends = "PRESET"`` or a path,
+    relative to the file) over that base, section by section; a file without ``extends`` is
+    returned as it is (resolved onto the schema's defaults)."""
+    if "extends" not in data:
+        return data
+    data = dict(data)
+    ext = data.pop("extends")
+    if not isinstance(ext, str) or not ext:
+        raise ConfigError(f"extends = {ext!r} must be a preset name ({', '.join(preset_names())}) "
+                          "or the path of a TOML file")  # fmt: skip
+    if depth > 8:
+        raise ConfigError(f"extends = {ext!r}: more than 8 levels of extends (a cycle?)")
+    if ext in preset_names():
+        base = preset_data(ext)
+        bdir = None
+    else:
+        p = Path(ext)
+        if not p.is_absolute() and base_dir is not None:
+            p = base_dir / p
+        if not p.exists() and not ext.endswith(".toml"):
+            raise ConfigError(f"extends = {ext!r}: no such preset ({', '.join(preset_names())}) "
+                              f"and no file {str(p)!r}")  # fmt: skip
+        base = read_toml(p)
+        bdir = p.parent
+    base = resolve_extends(base, bdir, depth + 1)
+    out = copy.deepcopy(base)
+    for sec, table in data.items():
+        if isinstance(table, dict) and isinstance(out.get(sec), dict):
+            out[sec].update(table)
+        else:
+            out[sec] = table
+    return out
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
     """Load a configuration (the built-in default when ``path`` is None) and apply overrides.
+
+    A file may start from a built-in preset or another file with a top-level
+    ``extends = "chute_seed"`` (or a path); its sections then override the base's keys.
 
     >>> cfg = load_config(overrides=["time.end=0.1"])
     >>> cfg.scenario.kind
     'chute'
     """
-    data = read_toml(path) if path is not None else default_data()
+    if path is not None:
+        data = resolve_extends(read_toml(path), Path(path).parent)
+    else:
+        data = default_data()
     data = apply_overrides(data, overrides)
     return validate_data(data)
 
