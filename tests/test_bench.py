@@ -88,3 +88,18 @@ def test_bench_reports_the_peer_ratio_within_rounds(tmp_path):
     assert q["n_points"] == r["n_points"] and len(q["block_wall_s"]) == 3
     ratios = sorted(a / b for a, b in zip(r["block_wall_s"], q["block_wall_s"], strict=True))
     assert r["cost_ratio_vs_taichi"] == pytest.approx(ratios[1], rel=1e-12)
+
+
+def test_bench_times_the_nonlocal_variant_against_the_local(tmp_path):
+    """--variants local nonlocal: both models at the same size, blocks interleaved, the nonlocal
+    one's cost ratio the median of the within-round ratios of the two blocks."""
+    import statistics
+
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--sizes", "600", "--threads", "1", "--steps", "20", "--repeats", "3",
+                 "--no-peer", "--variants", "local", "nonlocal", "--json", str(out)]) == 0  # fmt: skip
+    loc, nl = json.loads(out.read_text())["results"]
+    assert loc["variant"] == "local" and nl["variant"] == "nonlocal"
+    assert loc["n_points"] == nl["n_points"]
+    ratios = [a / b for a, b in zip(nl["block_wall_s"], loc["block_wall_s"], strict=True)]
+    assert nl["cost_ratio_vs_local"] == pytest.approx(statistics.median(ratios))

@@ -26,21 +26,26 @@ import numba
 
 from . import __version__
 from .bench_taichi import summarize
-from .config import load_config
 from .io.atomic import write_json
 
 
-def _config_for(n_points: int):
-    base = load_config(overrides=["output.progress=false", "output.fields=false"])
+#: the variants ``segmpm bench --variants`` can time: the preset each one starts from
+VARIANTS = {"local": "chute_seed", "nonlocal": "chute_nonlocal"}
+
+
+def _config_for(n_points: int, variant: str = "local"):
+    from .config import apply_overrides, preset_data, resolve_extends, validate_data
+
+    data = resolve_extends(preset_data(VARIANTS[variant]), None)
+    quiet = ["output.progress=false", "output.fields=false"]
+    base = validate_data(apply_overrides(data, quiet))
     h = base.grid.cell_size
     ppc = base.grid.particles_per_cell
     rows = round(base.geometry.depth / (h / ppc))
     cells = max(2, round(n_points / rows / ppc))
     # the production configuration: the concentration subcycle every segregation.dt = 1e-3 s,
     # i.e. about every 70 steps, so a few hundred timed steps include several of them
-    return load_config(
-        overrides=["output.progress=false", "output.fields=false", f"geometry.length={cells * h!r}"]
-    )
+    return validate_data(apply_overrides(data, [*quiet, f"geometry.length={cells * h!r}"]))
 
 
 class Peer:
@@ -102,53 +107,61 @@ def _paired(num: list[float], den: list[float]) -> float:
 
 
 def bench_size(
-    n_points: int, threads: list[int], steps: int, repeats: int = 5, peer: bool = True
+    n_points: int, threads: list[int], steps: int, repeats: int = 5, peer: bool = True,
+    variants: tuple[str, ...] = ("local",),
 ) -> list[dict[str, Any]]:
     """Time the seed chute with about ``n_points`` points at every thread count in ``threads``
-    (and the Taichi peer if ``peer``), their blocks interleaved round by round; one result per
-    thread count."""
+    for each variant (``VARIANTS``: the local default and the grain-calibrated nonlocal model),
+    and the Taichi peer if ``peer``, their blocks interleaved round by round; one result per
+    variant and thread count. Variants after the first get their cost ratio to the first."""
     from .simulation import Simulation
 
-    sim = Simulation(_config_for(n_points))
-    n = sim.state.n
-    first: dict[int, float] = {}
-    for t in threads:
-        sim.threads = t  # the simulation sets numba's thread count on every call
-        t0 = time.perf_counter()
-        sim.advance(1.0, 1)  # compiles (or loads the cache) on the first thread count
-        first[t] = time.perf_counter() - t0
-    sim.advance(1.0, max(10, steps // 10))  # leave the start-up state
+    sims = {v: Simulation(_config_for(n_points, v)) for v in variants}
+    n = sims[variants[0]].state.n
+    first: dict[tuple[str, int], float] = {}
+    for v, sim in sims.items():
+        for t in threads:
+            sim.threads = t  # the simulation sets numba's thread count on every call
+            t0 = time.perf_counter()
+            sim.advance(1.0, 1)  # compiles (or loads the cache) on the first thread count
+            first[v, t] = time.perf_counter() - t0
+        sim.advance(1.0, max(10, steps // 10))  # leave the start-up state
     peers = _peers(n, threads, steps) if peer else {}
-    walls: dict[int, list[float]] = {t: [] for t in threads}
+    walls: dict[tuple[str, int], list[float]] = {(v, t): [] for v in variants for t in threads}
     pwalls: dict[int, list[float]] = {t: [] for t in peers}
     try:
         for _ in range(max(1, repeats)):
             for t in threads:
-                sim.threads = t
-                w0, s0 = sim.wall_time, sim.steps
-                sim.advance(1.0, steps)
-                if sim.steps - s0 != steps:
-                    raise RuntimeError(
-                        f"bench: the chute stopped after {sim.steps - s0} of {steps} steps"
-                    )
-                walls[t].append(sim.wall_time - w0)
+                for v, sim in sims.items():
+                    sim.threads = t
+                    w0, s0 = sim.wall_time, sim.steps
+                    sim.advance(1.0, steps)
+                    if sim.steps - s0 != steps:
+                        raise RuntimeError(
+                            f"bench: the chute stopped after {sim.steps - s0} of {steps} steps"
+                        )
+                    walls[v, t].append(sim.wall_time - w0)
                 if t in peers:
                     pwalls[t].append(peers[t].block())
     finally:
         for q in peers.values():
             q.close()
     out = []
-    for t in threads:
-        r: dict[str, Any] = {"n_points": n, "threads": t, **summarize(n, steps, walls[t]),
-                             "first_call_s": first[t]}  # fmt: skip
-        if t != threads[0]:
-            r[f"speedup_vs_{threads[0]}_threads"] = _paired(walls[threads[0]], walls[t])
-        if t in peers:
-            q = {**peers[t].facts, **summarize(n, steps, pwalls[t])}
-            r["taichi_mpm88"] = q
-            r["cost_ratio_vs_taichi"] = _paired(walls[t], pwalls[t])
-            r["cost_ratio_of_medians"] = r["ns_per_particle_step"] / q["ns_per_particle_step"]
-        out.append(r)
+    for v in variants:
+        for t in threads:
+            w = walls[v, t]
+            r: dict[str, Any] = {"variant": v, "n_points": n, "threads": t,
+                                 **summarize(n, steps, w), "first_call_s": first[v, t]}  # fmt: skip
+            if t != threads[0]:
+                r[f"speedup_vs_{threads[0]}_threads"] = _paired(walls[v, threads[0]], w)
+            if v != variants[0]:
+                r[f"cost_ratio_vs_{variants[0]}"] = _paired(w, walls[variants[0], t])
+            if t in peers:
+                q = {**peers[t].facts, **summarize(n, steps, pwalls[t])}
+                r["taichi_mpm88"] = q
+                r["cost_ratio_vs_taichi"] = _paired(w, pwalls[t])
+                r["cost_ratio_of_medians"] = r["ns_per_particle_step"] / q["ns_per_particle_step"]
+            out.append(r)
     return out
 
 
@@ -159,6 +172,7 @@ def run_bench(
     json_out: str | None,
     peer: bool = True,
     repeats: int = 5,
+    variants: tuple[str, ...] = ("local",),
 ) -> int:
     """Run the benchmark grid, print a table, optionally write JSON; returns the exit code.
 
@@ -177,20 +191,22 @@ def run_bench(
           f"{repeats} rounds of {steps}-step blocks interleaved over thread counts"
           f"{' and the Taichi peer' if peer else ''}; median block, median ratio within rounds; "
           f"numba {numba.__version__}, up to {max_threads} threads")  # fmt: skip
-    print(f"{'points':>8} {'threads':>7} {'Mpart-steps/s':>14} {'ns/part-step':>13} "
+    print(f"{'variant':>9} {'points':>8} {'threads':>7} {'Mpart-steps/s':>14} {'ns/part-step':>13} "
           f"{'best ns':>8} {'speed-up':>8} {'first call s':>13} {'taichi ns':>10} "
-          f"{'ours/taichi':>11}")  # fmt: skip
+          f"{'ours/taichi':>11} {'vs ' + variants[0]:>10}")  # fmt: skip
     for n in sizes:
-        for r in bench_size(n, usable, steps, repeats, peer):
+        for r in bench_size(n, usable, steps, repeats, peer, tuple(variants)):
             results.append(r)
             sp = r.get(f"speedup_vs_{usable[0]}_threads")
             q = r.get("taichi_mpm88")
             extra = (f"{q['ns_per_particle_step']:>10.1f} {r['cost_ratio_vs_taichi']:>11.2f}"
                      if q is not None else f"{'-':>10} {'-':>11}")  # fmt: skip
-            print(f"{r['n_points']:>8} {r['threads']:>7} {r['particle_steps_per_s'] / 1e6:>14.3f} "
+            vr = r.get(f"cost_ratio_vs_{variants[0]}")
+            print(f"{r['variant']:>9} {r['n_points']:>8} {r['threads']:>7} "
+                  f"{r['particle_steps_per_s'] / 1e6:>14.3f} "
                   f"{r['ns_per_particle_step']:>13.1f} {r['best_ns_per_particle_step']:>8.1f} "
-                  f"{(f'{sp:.2f}' if sp else '-'):>8} {r['first_call_s']:>13.2f} {extra}",
-                  flush=True)  # fmt: skip
+                  f"{(f'{sp:.2f}' if sp else '-'):>8} {r['first_call_s']:>13.2f} {extra} "
+                  f"{(f'{vr:.2f}' if vr else '-'):>10}", flush=True)  # fmt: skip
     doc = {
         "segmpm_version": __version__,
         "method": "rounds of interleaved blocks (every thread count, then the peer at the same "
