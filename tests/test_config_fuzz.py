@@ -16,8 +16,9 @@ import json
 import math
 import tempfile
 import tomllib
+import types
 from pathlib import Path
-from typing import Any, Literal, get_args, get_origin
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
@@ -45,9 +46,20 @@ SETTINGS = settings(
 # ----------------------------------------------------------------------------- the schema
 
 
+def _int_part(info):
+    """The annotated int of an ``int | Literal[...]`` field (grid.threads), or None."""
+    for arg in get_args(info.annotation):
+        if get_origin(arg) is Annotated and get_args(arg)[0] is int:
+            return arg
+    return None
+
+
 def _bounds(info) -> dict[str, float]:
     out = {}
-    for m in info.metadata:
+    meta = list(info.metadata)
+    if _kind(info) == "int_or_literal":
+        meta = [m for f in get_args(_int_part(info))[1:] for m in getattr(f, "metadata", [f])]
+    for m in meta:
         for attr in ("gt", "ge", "lt", "le"):
             v = getattr(m, attr, None)
             if v is not None:
@@ -69,6 +81,10 @@ def _kind(info) -> str:
         return "str"
     if get_origin(ann) is list:
         return "float_list"
+    if get_origin(ann) in (Union, types.UnionType):
+        args = get_args(ann)
+        if len(args) == 2 and get_origin(args[1]) is Literal and get_origin(args[0]) is Annotated:
+            return "int_or_literal"
     raise AssertionError(f"untested field type {ann}")
 
 
@@ -93,6 +109,13 @@ COUPLED = {
     ("mixture", "d_small"),
     ("mixture", "d_large"),
     ("output", "profile_times"),
+    ("material", "rheology"),
+    ("material", "model"),
+    ("material", "q_phi"),
+    ("material", "cap_ratio"),
+    ("material", "static_friction"),
+    ("segregation", "model"),
+    ("segregation", "driver"),
 }
 
 BOOL_WORDS = {"true", "false", "yes", "no", "on", "off", "y", "n", "t", "f", "1", "0"}
@@ -180,6 +203,9 @@ def in_range(info) -> st.SearchStrategy:
     b = _bounds(info)
     if kind == "literal":
         return st.sampled_from(get_args(info.annotation))
+    if kind == "int_or_literal":
+        words = get_args(get_args(info.annotation)[1])
+        return st.integers(b["ge"], b["le"]) | st.sampled_from(words)
     if kind == "bool":
         return st.booleans()
     if kind == "int":
@@ -228,6 +254,29 @@ def valid_data(draw) -> dict[str, Any]:
     )
     times = draw(st.lists(st.floats(0, 1e5), unique=True, max_size=8))
     data.setdefault("output", {})["profile_times"] = sorted(times)
+    # the rheology and what depends on it: nonlocal needs fei2016, a cap above μ_s, and the
+    # fluidity-driven closures need nonlocal
+    mat, seg = data.setdefault("material", {}), data.setdefault("segregation", {})
+    rheology = draw(st.sampled_from(["local", "nonlocal"]))
+    mat["rheology"] = rheology
+    cap_ratio = draw(st.floats(0.05, 1.0))
+    q_phi = draw(st.floats(0.05, 2.0))
+    mat.update(cap_ratio=cap_ratio, q_phi=q_phi)
+    q_c = q_phi * 2.0 * cap_ratio / (1.0 + cap_ratio**2)
+    if rheology == "nonlocal":
+        mat["model"] = "fei2016"
+        mat["static_friction"] = max(q_c * draw(st.floats(0.01, 0.99)), 1e-6)
+    else:
+        mat["model"] = draw(in_range(FIELDS[("material", "model")]))
+        mat["static_friction"] = draw(in_range(FIELDS[("material", "static_friction")]))
+    seg_model = draw(in_range(FIELDS[("segregation", "model")]))
+    driver = draw(in_range(FIELDS[("segregation", "driver")]))
+    if rheology == "local":
+        if seg_model == "hill_tan_fluidity":
+            seg_model = "hill_tan_full"
+        if driver == "G":
+            driver = "A"
+    seg.update(model=seg_model, driver=driver)
     return data
 
 
@@ -271,6 +320,15 @@ def out_of_range(info) -> st.SearchStrategy:
         )
     if kind == "str":
         return st.integers() | st.floats(allow_nan=False) | containers
+    if kind == "int_or_literal":
+        words = set(get_args(get_args(info.annotation)[1]))
+        return (
+            st.integers(max_value=b["ge"] - 1)
+            | st.integers(min_value=b["le"] + 1)
+            | st.floats(allow_nan=False, allow_infinity=False).filter(lambda x: x != int(x))
+            | LETTERS.filter(lambda s: s not in words)
+            | containers
+        )
     if kind == "float_list":
         return (
             st.floats(allow_nan=False)
@@ -581,5 +639,5 @@ def test_fixed_defect_control_characters_do_not_round_trip(text):
 def test_strategies_cover_every_field_type():
     # guard for the strategies above: every field type is one the generators know
     assert {_kind(i) for i in FIELDS.values()} <= {"literal", "bool", "int", "float", "str",
-                                                   "float_list"}  # fmt: skip
+                                                   "float_list", "int_or_literal"}  # fmt: skip
     json.dumps(validate_data({}).to_dict())

@@ -47,8 +47,12 @@ def test_conserved_bounded_and_moving(closure):
         # the pressure-gradient term (small grains toward higher pressure) outweighs the
         # shear-rate-gradient term (toward lower shear rate, here up) when C_p > C_seg/2
         ["segregation.model='liu_henann'", "segregation.lh_C_seg=0.02", "segregation.lh_C_p=0.1"],
-        NONLOCAL + ["segregation.model='liu_henann'", "segregation.lh_C_seg=0.02",
-                    "segregation.lh_C_p=0.1"],  # fmt: skip
+        NONLOCAL
+        + [
+            "segregation.model='liu_henann'",
+            "segregation.lh_C_seg=0.02",
+            "segregation.lh_C_p=0.1",
+        ],  # fmt: skip
         # Bagnold flow (no sidewalls): S_A = μ_d p and S_B ∝ ρ(γ̇ d̄)² grow downward, so the reduced
         # model lifts the small grains (physics.md §2.5) — the sign rule tested the other way round
         ["segregation.model='hill_tan_reduced'", "segregation.driver='A'"],

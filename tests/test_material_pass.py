@@ -24,12 +24,22 @@ CASES = {
     "fei-power-driverC": ["material.b=0.7", "segregation.driver='C'"],
     "linear-elastic": ["material.model='linear_elastic'"],
     "fei-b1-driverP": ["segregation.model='liu_henann'"],
-    "nonlocal-driverG": ["material.rheology='nonlocal'", "material.q_phi=0.6",
-                         "segregation.model='hill_tan_fluidity'"],  # fmt: skip
-    "nonlocal-driverP-bulk": ["material.rheology='nonlocal'", "material.q_phi=0.6",
-                              "segregation.model='liu_henann'", "material.bulk_viscosity=0.1"],
-    "nonlocal-driverA": ["material.rheology='nonlocal'", "material.q_phi=0.6",
-                         "segregation.driver='A'"],  # fmt: skip
+    "nonlocal-driverG": [
+        "material.rheology='nonlocal'",
+        "material.q_phi=0.6",
+        "segregation.model='hill_tan_fluidity'",
+    ],  # fmt: skip
+    "nonlocal-driverP-bulk": [
+        "material.rheology='nonlocal'",
+        "material.q_phi=0.6",
+        "segregation.model='liu_henann'",
+        "material.bulk_viscosity=0.1",
+    ],
+    "nonlocal-driverA": [
+        "material.rheology='nonlocal'",
+        "material.q_phi=0.6",
+        "segregation.driver='A'",
+    ],  # fmt: skip
 }
 #: a partial last block
 N = 3 * S.BLOCK + 37

@@ -169,3 +169,25 @@ def test_invalid_sweep_files_exit_2(tmp_path, capsys):
     p.write_text("[parameters\n")
     assert main(["sweep", str(p), "--out", str(tmp_path / "o")]) == 2
     assert "not valid TOML" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("inline", [False, True])
+def test_sweep_base_may_extend_a_preset(tmp_path, inline):
+    """A base (a file or an inline [base]) that ``extends`` the seed preset resolves onto it: the
+    keys it does not set are the preset's, not the schema's defaults."""
+    from segmpm.config import load_config
+
+    base = 'extends = "chute_seed"\n[time]\nend = 0.01\n'
+    if inline:
+        text = '[base]\nextends = "chute_seed"\n[base.time]\nend = 0.01\n'
+    else:
+        (tmp_path / "base.toml").write_text(base)
+        text = 'base = "base.toml"\n'
+    path = tmp_path / "sweep.toml"
+    path.write_text(text + '[parameters]\n"geometry.slope_deg" = [24.0, 26.0]\n')
+    members, _ = build_members(path, tmp_path / "out")
+    preset = load_config()  # the built-in default: the seed preset
+    for m, slope in zip(members, (24.0, 26.0), strict=True):
+        assert m.config.geometry.slope_deg == slope and m.config.time.end == 0.01
+        assert m.config.material.stiffness_scale == preset.material.stiffness_scale == 1e-3
+        assert m.config.geometry.length == preset.geometry.length

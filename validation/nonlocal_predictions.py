@@ -114,8 +114,14 @@ def model_overrides(cal: dict, model: str, mu_gw: float | None) -> dict[str, obj
     raise KeyError(model)
 
 
-MODELS = ["local_default", "local_calibrated", "local_lh", "nonlocal_lh", "nonlocal_htf",
-          "nonlocal_B"]
+MODELS = [
+    "local_default",
+    "local_calibrated",
+    "local_lh",
+    "nonlocal_lh",
+    "nonlocal_htf",
+    "nonlocal_B",
+]
 
 CASES = {
     "seed": dict(ref=HERE / "dem" / "reference_profiles.csv", mu_gw=0.3, over={}, end=20.0,
@@ -173,6 +179,7 @@ def table(results: list[dict]) -> str:
             lines.append(f"| {r['case']} | {r['model']} | error | | | | |")
             continue
         for t, v in r["per_time"].items():
+
             def f(x, fmt):
                 return format(x, fmt) if x is not None and math.isfinite(x) else "n/a"
 

@@ -16,7 +16,7 @@ from . import _cache  # noqa: F401, E402  (before any kernel is defined: keyed N
 from .threads import configure_layer as _configure_layer  # noqa: E402
 
 _configure_layer()  # the workqueue threading layer, before any parallel kernel runs
-from .config import Config, ConfigError, load_config
+from .config import Config, ConfigError, load_config  # noqa: E402
 
 __all__ = ["Config", "ConfigError", "Simulation", "load_config", "__version__"]
 

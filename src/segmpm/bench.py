@@ -28,7 +28,6 @@ from . import __version__
 from .bench_taichi import summarize
 from .io.atomic import write_json
 
-
 #: the variants ``segmpm bench --variants`` can time: the preset each one starts from
 VARIANTS = {"local": "chute_seed", "nonlocal": "chute_nonlocal"}
 
@@ -107,7 +106,11 @@ def _paired(num: list[float], den: list[float]) -> float:
 
 
 def bench_size(
-    n_points: int, threads: list[int], steps: int, repeats: int = 5, peer: bool = True,
+    n_points: int,
+    threads: list[int],
+    steps: int,
+    repeats: int = 5,
+    peer: bool = True,
     variants: tuple[str, ...] = ("local",),
 ) -> list[dict[str, Any]]:
     """Time the seed chute with about ``n_points`` points at every thread count in ``threads``
@@ -286,6 +289,7 @@ def bench_contended(sizes: list[int], threads: list[int], steps: int, repeats: i
             rows.append({"n_points": n, "threads": t, "steps_per_block": st,
                          "idle": summarize(n, st, idle[t]), "contended": summarize(n, st, cont[t]),
                          "slowdown": _paired(cont[t], idle[t])})  # fmt: skip
+
     # the default run as a user starts it: alone, beside a busy process, and two at once
     def seed_run(tag: str) -> subprocess.Popen:
         return subprocess.Popen([sys.executable, "-m", "segmpm.cli", "run", "--out",
@@ -338,8 +342,12 @@ def run_contended(sizes: list[int], threads: list[int], steps: int, json_out: st
     doc = {
         "segmpm_version": __version__,
         "threading_layer": threading_layer(),
-        "machine": {"python": platform.python_version(), "processor": platform.processor(),
-                    "numba": numba.__version__, "cores": res["cores"]},  # fmt: skip
+        "machine": {
+            "python": platform.python_version(),
+            "processor": platform.processor(),
+            "numba": numba.__version__,
+            "cores": res["cores"],
+        },  # fmt: skip
         **res,
     }
     if json_out:

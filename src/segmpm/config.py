@@ -371,7 +371,7 @@ class Config(_Section):
                     f"stress ratio at {q_c:.4g}, not above material.static_friction = "
                     f"{m.static_friction}: a nonlocal flow needs stress ratios above μ_s, so "
                     "q_phi must exceed the largest stress ratio of the flow (e.g. q_phi = 0.6; "
-                    "docs/model.md, \"Nonlocal rheology\")"
+                    'docs/model.md, "Nonlocal rheology")'
                 )
         needs_g = self.segregation.model == "hill_tan_fluidity" or (
             self.segregation.driver == "G" and self.segregation.model in

@@ -6,6 +6,7 @@ Python never loops over material points; it only decides when the compiled ``adv
 
 from __future__ import annotations
 
+import errno
 import math
 import signal
 import sys
@@ -23,11 +24,16 @@ from .config import Config, load_config
 from .io.atomic import write_json, write_text
 from .io.checkpoint import load_checkpoint, save_checkpoint
 from .mpm.params import (
+    G_CFL,
+    G_CFLOOR,
+    G_DTMAX,
+    G_DTMIN,
     G_GX,
     G_GY,
     G_H,
     G_LX,
     G_NY,
+    G_VISC,
     G_Y0,
     S_DT,
     S_NFLU,
@@ -48,7 +54,39 @@ from .threads import threading_layer
 EXIT_OK = 0
 EXIT_INVALID = 2
 EXIT_NUMERICAL = 3
+EXIT_WRITE = 4  # an output or checkpoint could not be written mid-run
 EXIT_INTERRUPTED = 130
+
+#: wall-clock seconds of work asked of one call of the compiled loop: Python (and so a SIGINT or
+#: SIGTERM handler) runs only between calls, so this bounds the reaction to a signal
+CALL_SECONDS = 1.0
+#: steps of the first call of a run; later calls are sized from the measured step rate, never
+#: above ``time.chunk_steps``
+FIRST_CALL_STEPS = 64
+
+
+def _steps_per_call(current: int, steps: int, seconds: float, limit: int) -> int:
+    """Steps for the next call of the compiled loop: about :data:`CALL_SECONDS` of work at the
+    rate of the last call (``steps`` in ``seconds``), growing at most 8-fold per call, between 1
+    and ``limit`` (``time.chunk_steps``). The results do not depend on how a run is cut into
+    calls (``tests/test_reliability.py``)."""
+    if steps <= 0 or seconds <= 0.0:
+        return max(1, min(limit, current))
+    want = int(steps / seconds * CALL_SECONDS)
+    return max(1, min(limit, want, 8 * max(current, steps)))
+
+
+def kernel_cache_warm() -> bool:
+    """True when Numba's on-disk cache holds the compiled time loop (``step.advance``), i.e. the
+    first call of this process loads it instead of compiling it."""
+    from .mpm import step as _step
+
+    root = numba.config.CACHE_DIR
+    folder = Path(root) if root else Path(_step.__file__).parent / "__pycache__"
+    try:
+        return any(folder.rglob("step.advance-*.nbi"))
+    except OSError:
+        return False
 
 
 def _bounds(work: dict[str, np.ndarray]) -> np.ndarray:
@@ -98,7 +136,12 @@ class Simulation:
         self._primed = False
         self._failed: tuple[int, int] | None = None
         self.wall_time = 0.0
+        #: seconds spent compiling (or loading) the kernels in this process's run, not part of
+        #: ``wall_time`` (run.json ``compile_s``)
+        self.compile_s = 0.0
         self._interrupt: int | None = None
+        self._starting = False  # an interrupt raises KeyboardInterrupt at once (before step 1)
+        self._ckpt_time: float | None = None  # time of the last checkpoint written or loaded
         grid_top = self.state.gp[G_Y0] + (self.state.gp[G_NY] - 1) * self.state.gp[G_H]
         self.edges = bin_edges(grid_top, self.config.output.profile_bin)
 
@@ -194,7 +237,23 @@ class Simulation:
         if status == ST_DT_COLLAPSE:
             d["max_signal_speed"] = float(st.sc[S_SMAX])
             d["max_viscosity"] = float(st.sc[S_NUMAX])
+            d.update(self._collapsed_step())
         return d
+
+    def _collapsed_step(self) -> dict[str, Any]:
+        """The time step the control asked for when it fell below ``time.dt_min`` (the same
+        limits as the compiled loop: dt_max, the Courant limit CFL h / max(c + |v|) with the
+        wave-speed floor, the viscous limit C_ν h² / (2 ν_max)) and which limit set it."""
+        gp, sc = self.state.gp, self.state.sc
+        h = float(gp[G_H])
+        dt, limit = float(gp[G_DTMAX]), "time.dt_max"
+        smax = max(float(sc[S_SMAX]), float(gp[G_CFLOOR]))
+        if smax > 0.0 and gp[G_CFL] * h / smax < dt:
+            dt, limit = float(gp[G_CFL] * h / smax), "Courant limit CFL h / max(c + |v|)"
+        if sc[S_NUMAX] > 0.0 and gp[G_VISC] * h * h / (2.0 * sc[S_NUMAX]) < dt:
+            dt = float(gp[G_VISC] * h * h / (2.0 * sc[S_NUMAX]))
+            limit = "viscous limit C_nu h^2 / (2 nu_max)"
+        return {"dt_collapsed": dt, "dt_min": float(gp[G_DTMIN]), "dt_limit": limit}
 
     def _failure_message(self, status: int, idx: int) -> str:
         d = self._diagnostic(status, idx)
@@ -204,6 +263,11 @@ class Simulation:
             else ""
         )
         extra = f"; non-finite: {', '.join(d['non_finite'])}" if d.get("non_finite") else ""
+        if "dt_collapsed" in d:
+            extra += (f"; dt = {d['dt_collapsed']:.3g} s < time.dt_min = {d['dt_min']:.3g} s "
+                      f"({d['dt_limit']}, max(c + |v|) = {d['max_signal_speed']:.4g} m/s, "
+                      f"max viscosity = {d['max_viscosity']:.3g} m²/s; last step "
+                      f"dt = {d['dt']:.3g} s)")  # fmt: skip
         return f"{d['reason']}{where} at t = {d['time']:.6g} s, step {d['step']}{extra}"
 
     # --------------------------------------------------------------------------- diagnostics
@@ -252,44 +316,72 @@ class Simulation:
             "y_datum": "y = 0 at the no-slip base (top of the rough layer)",
         }
 
-    def run(self, resume: bool = False, progress: bool | None = None) -> RunResult:
+    def run(
+        self, resume: bool = False, progress: bool | None = None, lock: bool = True
+    ) -> RunResult:
         """Run to ``time.end`` writing every output; returns a :class:`RunResult`.
 
-        Numerical failure → status "failed" (exit code 3); SIGINT/SIGTERM → checkpoint and
-        status "interrupted" (130). ``resume`` continues from ``out_dir/checkpoint``.
+        Numerical failure → status "failed" (exit code 3); an output or checkpoint that cannot
+        be written → status "failed" (exit code 4; the last complete checkpoint and outputs are
+        kept, no temporary file is left); SIGINT/SIGTERM → checkpoint and status "interrupted"
+        (130). ``resume`` continues from ``out_dir/checkpoint``. ``lock``: hold the lock on
+        ``out_dir`` (``io.outdir.OutLock``) for the run, raising ``io.outdir.LockedError`` if
+        another run holds it, and ``OutDirError`` if ``out_dir`` cannot be used; pass False when
+        the caller holds it (the command line does).
         """
+        if not lock:
+            return self._run(resume, progress)
+        from .io.outdir import OutLock, prepare_out_dir
+
+        prepare_out_dir(self.out_dir)
+        with OutLock(self.out_dir):
+            return self._run(resume, progress)
+
+    def _run(self, resume: bool, progress: bool | None) -> RunResult:
         from .io.figures import plot_profiles
+        from .io.outdir import remove_stale_temporaries
         from .io.profiles import ProfileWriter
         from .io.vtk import VTKSeries
 
         cfg = self.config
         out = self.out_dir
-        out.mkdir(parents=True, exist_ok=True)
         ckpt_path = out / "checkpoint" / "state.npz"
-        writer = ProfileWriter(out / "profiles.nc", self.edges, self._attrs())
-        vtk = VTKSeries(out / "fields")
-        if resume:
-            self.load_checkpoint(ckpt_path)
-            writer.restore(self.time)
-            vtk.restore(self.time)
-        else:
-            write_text(out / "config.toml", cfg.to_toml())
-            self._prime()
-            self.save_checkpoint(ckpt_path)  # a last good state exists from the start
         show = cfg.output.progress if progress is None else progress
         end = cfg.time.end
         out_times = [t for t in cfg.output.profile_times if t <= end + 1e-12]
-        written = set(writer.times)
         ckpt_dt = cfg.output.checkpoint_interval
-        next_ckpt = (
-            (math.floor(self.time / ckpt_dt + 1e-9) + 1) * ckpt_dt if ckpt_dt > 0 else math.inf
-        )
-
-        self._install_signals()
-        bar = _progress(show, end, self.time, self.state.n)
+        bar = None
         status, exit_code, failure = "running", EXIT_OK, None
-        self._write_runinfo(status, None)
+        keep = False  # True once the state is one to checkpoint on an interrupt
+        # the handlers go in before the first compiled call: a first run compiles for minutes
+        self._install_signals()
         try:
+            self._starting = True  # until the first step, an interrupt stops the run at once
+            try:
+                remove_stale_temporaries(out)
+                writer = ProfileWriter(out / "profiles.nc", self.edges, self._attrs())
+                vtk = VTKSeries(out / "fields")
+                if resume:
+                    self.load_checkpoint(ckpt_path)
+                    writer.restore(self.time)
+                    vtk.restore(self.time)
+                # (on resume: the configuration it continues with, e.g. a later time.end)
+                write_text(out / "config.toml", cfg.to_toml())
+                self.compile_s += self._compile_kernels()
+            finally:
+                self._starting = False
+            if self._interrupt is not None:
+                raise KeyboardInterrupt
+            if not resume:
+                self.save_checkpoint(ckpt_path)  # a last good state exists from the start
+            keep = True
+            written = set(writer.times)
+            next_ckpt = (
+                (math.floor(self.time / ckpt_dt + 1e-9) + 1) * ckpt_dt if ckpt_dt > 0 else math.inf
+            )
+            bar = _progress(show, end, self.time, self.state.n)
+            bar.start(self.steps, self.wall_time)
+            self._write_runinfo(status, None)
             for t_out in out_times:
                 if (
                     t_out <= self.time + 1e-12
@@ -298,12 +390,16 @@ class Simulation:
                 ):
                     self._output(t_out, writer, vtk)
                     written.add(t_out)
+            per_call = min(cfg.time.chunk_steps, FIRST_CALL_STEPS)
             while True:
                 pending = [t for t in out_times if t > self.time + 1e-12]
                 target = min([end, next_ckpt, *pending])
                 if self.time >= end - 1e-15:
                     break
-                status_code, idx, n = self.advance(target, cfg.time.chunk_steps)
+                t0 = _time.perf_counter()
+                status_code, idx, n = self.advance(target, per_call)
+                per_call = _steps_per_call(per_call, n, _time.perf_counter() - t0,
+                                           cfg.time.chunk_steps)  # fmt: skip
                 bar.update(self.time, self.steps, self.wall_time)
                 if status_code != ST_OK:
                     raise SimulationError(
@@ -318,26 +414,105 @@ class Simulation:
                         self.save_checkpoint(ckpt_path)
                         next_ckpt += ckpt_dt
                     self._write_runinfo("running", None)
-            status = "completed"
             self.save_checkpoint(ckpt_path)
+            if cfg.output.figures and writer.times:
+                plot_profiles(writer.dataset(), out / "figures" / "profiles.png",
+                              title=f"{cfg.scenario.kind}: depth profiles")  # fmt: skip
+            status = "completed"
         except SimulationError as err:
             status, exit_code, failure = "failed", EXIT_NUMERICAL, err.diagnostic
             failure["message"] = str(err)
             print(f"segmpm: simulation failed: {err}", file=sys.stderr)
             print(f"segmpm: last good checkpoint kept in {ckpt_path}", file=sys.stderr)
+        except OSError as err:
+            status, exit_code, failure = "failed", EXIT_WRITE, self._write_failure(err, ckpt_path)
         except KeyboardInterrupt:
             status, exit_code = "interrupted", EXIT_INTERRUPTED
-            self.save_checkpoint(ckpt_path)
-            print(f"segmpm: interrupted at t = {self.time:.6g} s; checkpoint in {ckpt_path}; "
-                  f"continue with: segmpm run --resume --out {out}", file=sys.stderr)  # fmt: skip
+            if keep:
+                try:
+                    self.save_checkpoint(ckpt_path)
+                except OSError as err:
+                    status, exit_code = "failed", EXIT_WRITE
+                    failure = self._write_failure(err, ckpt_path)
+                else:
+                    print(f"segmpm: interrupted at t = {self.time:.6g} s; checkpoint in "
+                          f"{ckpt_path}; continue with: segmpm run --resume --out {out}",
+                          file=sys.stderr)  # fmt: skip
+            else:
+                print("segmpm: interrupted before the first step"
+                      + (f"; the checkpoint in {ckpt_path} is unchanged" if resume else
+                         " (no checkpoint yet: a --resume starts the run from the beginning)"),
+                      file=sys.stderr)  # fmt: skip
         finally:
-            bar.close()
+            if bar is not None:
+                bar.close()
             self._restore_signals()
-        info = self._write_runinfo(status, failure)
-        if status == "completed" and cfg.output.figures and writer.times:
-            plot_profiles(writer.dataset(), out / "figures" / "profiles.png",
-                          title=f"{cfg.scenario.kind}: depth profiles")  # fmt: skip
-        return RunResult(status, exit_code, info)
+        if resume and not keep and exit_code == EXIT_INTERRUPTED:
+            # stopped before the checkpoint was even loaded: run.json still describes it
+            return RunResult(status, exit_code, self._runinfo(status, failure))
+        try:
+            info = self._write_runinfo(status, failure)
+        except OSError as err:
+            info = self._runinfo(status, failure)
+            print(f"segmpm: error: {out / 'run.json'} could not be updated: {err}",
+                  file=sys.stderr)  # fmt: skip
+            if exit_code != EXIT_WRITE:
+                exit_code = EXIT_WRITE
+                info["status"] = "failed"
+                info["failure"] = self._write_failure(err, ckpt_path, report=False)
+        return RunResult(info["status"], exit_code, info)
+
+    def _compile_kernels(self) -> float:
+        """Compile the kernels (or load them from Numba's cache) before the first step: the
+        initial state is primed (fresh run) and the time loop called for zero steps, which
+        changes nothing. Returns the seconds taken (``compile_s`` of run.json), which are not
+        part of the wall time of the loop; the first run of a fresh install says that it
+        compiles (2–4 minutes)."""
+        cold = not advance.signatures and not kernel_cache_warm()
+        if cold:
+            print("segmpm: compiling kernels (first run only, about 2-4 minutes)",
+                  file=sys.stderr, flush=True)  # fmt: skip
+        t0, wall = _time.perf_counter(), self.wall_time
+        try:
+            self.advance(self.time, 0)
+        finally:
+            self.wall_time = wall
+        took = _time.perf_counter() - t0
+        if cold:
+            print(f"segmpm: kernels compiled in {took:.0f} s (cached for the next runs)",
+                  file=sys.stderr, flush=True)  # fmt: skip
+        return took
+
+    def _write_failure(self, err: OSError, ckpt_path: Path, report: bool = True) -> dict[str, Any]:
+        """The diagnostic of an output that could not be written (exit 4), printed if
+        ``report``."""
+        path = getattr(err, "path", None) or err.filename or "?"
+        code = getattr(err, "code_name", None) or (
+            errno.errorcode.get(err.errno) if isinstance(err.errno, int) else None
+        )
+        cause = err.strerror or str(err)
+        message = f"cannot write {path}: {cause}" + (f" ({code})" if code else "")
+        d: dict[str, Any] = {
+            "reason": "output could not be written",
+            "path": str(path),
+            "errno": code,
+            "cause": cause,
+            "time": self.time,
+            "step": self.steps,
+            "last_checkpoint_time": self._ckpt_time,
+            "message": message,
+        }
+        if report:
+            kept = (
+                f"the last complete checkpoint ({ckpt_path}, t = {self._ckpt_time:.6g} s)"
+                if self._ckpt_time is not None
+                else "no checkpoint was written yet; the outputs already written"
+            )
+            print(f"segmpm: error: {message}\nsegmpm: the run stopped at t = {self.time:.6g} s "
+                  f"(step {self.steps}); {kept} and the outputs written before are kept. Once "
+                  f"the cause is fixed, continue with: segmpm run --resume --out {self.out_dir}",
+                  file=sys.stderr)  # fmt: skip
+        return d
 
     def segregation_diagnostics(self) -> dict[str, float]:
         """Segregation index, species centroids and small-grain volume drift of the current state."""
@@ -358,6 +533,11 @@ class Simulation:
             vtk.add(t, self.state, self.config.material.rheology == "nonlocal")
 
     def _write_runinfo(self, status: str, failure: dict[str, Any] | None) -> dict[str, Any]:
+        info = self._runinfo(status, failure)
+        write_json(self.out_dir / "run.json", info)
+        return info
+
+    def _runinfo(self, status: str, failure: dict[str, Any] | None) -> dict[str, Any]:
         n = self.state.n
         info: dict[str, Any] = {
             "status": status,
@@ -368,6 +548,7 @@ class Simulation:
             "steps": self.steps,
             "n_points": n,
             "wall_time_s": self.wall_time,
+            "compile_s": self.compile_s,
             "particle_steps_per_second": (self.steps * n / self.wall_time)
             if self.wall_time > 0
             else None,
@@ -383,7 +564,6 @@ class Simulation:
         }
         if failure is not None:
             info["failure"] = failure
-        write_json(self.out_dir / "run.json", info)
         return info
 
     # --------------------------------------------------------------------------- checkpoints
@@ -399,6 +579,7 @@ class Simulation:
             "segmpm_version": __version__,
         }
         save_checkpoint(path, arrays, meta)
+        self._ckpt_time = self.time
 
     def load_checkpoint(self, path: str | Path) -> None:
         """Restore the state saved by :meth:`save_checkpoint`."""
@@ -413,6 +594,7 @@ class Simulation:
         self.wall_time = float(meta.get("wall_time", 0.0))
         self._primed = True
         self._failed = None
+        self._ckpt_time = self.time
 
     # --------------------------------------------------------------------------- signals
     def _install_signals(self) -> None:
@@ -420,6 +602,8 @@ class Simulation:
 
         def handler(signum, frame):  # noqa: ARG001
             self._interrupt = signum
+            if self._starting:  # compiling or loading: nothing to save yet, stop at once
+                raise KeyboardInterrupt
 
         for sig in (signal.SIGINT, signal.SIGTERM):
             try:
@@ -433,28 +617,60 @@ class Simulation:
         self._old_handlers = {}
 
 
+def _eta(end: float, t: float, t_start: float, elapsed: float) -> float | None:
+    """Seconds to ``end`` at the simulated-time rate measured since the loop started (at
+    ``t_start``, ``elapsed`` wall seconds ago; the kernel compile is not in it), or None."""
+    if elapsed <= 0.0 or t <= t_start:
+        return None
+    return max(0.0, end - t) * elapsed / (t - t_start)
+
+
+def _clock(seconds: float) -> str:
+    s = int(round(seconds))
+    return (
+        f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+    )
+
+
 class _progress:
-    """tqdm progress bar over simulated time with steps/s, particle-steps/s and ETA."""
+    """tqdm progress bar over simulated time with steps/s, particle-steps/s and an ETA, all from
+    the rates measured since :meth:`start` (after the kernels are compiled)."""
 
     def __init__(self, show: bool, end: float, t0: float, n: int):
         self.n = n
+        self.end = end
         self.bar = None
         if show:
             from tqdm import tqdm
 
             self.bar = tqdm(total=end, initial=t0, unit="s", unit_scale=False, dynamic_ncols=True,
-                            bar_format="{l_bar}{bar}| t={n:.4g}/{total:.4g} s [{elapsed}<{remaining}{postfix}]")  # fmt: skip
+                            bar_format="{l_bar}{bar}| t={n:.4g}/{total:.4g} s [{elapsed}{postfix}]")  # fmt: skip
         self.t = t0
+        self.t_start, self.steps_start, self.wall_start = t0, 0, 0.0
+        self.clock_start = _time.perf_counter()
+
+    def start(self, steps: int, wall: float) -> None:
+        """The loop starts now, at ``steps`` steps and ``wall`` seconds of loop wall time."""
+        self.steps_start, self.wall_start = steps, wall
+        self.clock_start = _time.perf_counter()
+
+    def postfix(self, t: float, steps: int, wall: float) -> str:
+        parts = []
+        busy = wall - self.wall_start
+        done = steps - self.steps_start
+        if busy > 0 and done > 0:
+            parts.append(f"{done / busy:,.0f} steps/s, {done * self.n / busy:.3g} particle-steps/s")
+        eta = _eta(self.end, t, self.t_start, _time.perf_counter() - self.clock_start)
+        if eta is not None:
+            parts.append(f"ETA {_clock(eta)}")
+        return ", ".join(parts)
 
     def update(self, t: float, steps: int, wall: float) -> None:
         if self.bar is None:
             return
-        self.bar.update(t - self.t)
+        self.bar.set_postfix_str(self.postfix(t, steps, wall), refresh=False)
+        self.bar.update(t - self.t)  # redraws at most every 0.1 s (tqdm's mininterval)
         self.t = t
-        if wall > 0:
-            self.bar.set_postfix_str(
-                f"{steps / wall:,.0f} steps/s, {steps * self.n / wall:.3g} particle-steps/s"
-            )
 
     def close(self) -> None:
         if self.bar is not None:

@@ -14,8 +14,10 @@ Members are numbered in the order of :func:`itertools.product` (the last key var
 the zipped lists, and run in ``OUT/members/NNNN/`` as ordinary runs (``config.toml``, ``run.json``,
 ``profiles.nc``, …). Every member's configuration is validated before any runs (exit 2 naming the
 member and the key). On re-running the same sweep, a member whose ``run.json`` says "completed"
-and whose ``config.toml`` equals its configuration is skipped; an interrupted member with a
-checkpoint is resumed; any other member runs from the start.
+and whose ``config.toml`` holds its configuration (``grid.threads``, ``output.progress``,
+``output.dir`` and ``time.chunk_steps`` may differ) is skipped; an interrupted member with a
+checkpoint is resumed; any other member runs from the start, its folder cleared of segmpm's files
+first. Each member holds the lock on its folder while it runs (``io.outdir.OutLock``).
 
 Members run on a ``LocalCluster(n_workers=N, threads_per_worker=1, processes=True)`` (N = --workers,
 default 2, at most the number of members to run) or on the scheduler given by ``--scheduler``
@@ -46,7 +48,16 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .config import _SECTIONS, Config, ConfigError, default_data, read_toml, validate_data
+from .config import (
+    _SECTIONS,
+    Config,
+    ConfigError,
+    default_data,
+    load_config,
+    read_toml,
+    resolve_extends,
+    validate_data,
+)
 from .io.atomic import write_json, write_with
 
 EXIT_OK = 0
@@ -108,11 +119,14 @@ def _read_sweep(path: Path) -> tuple[dict[str, Any], dict[str, list[Any]], str]:
         if not bp.is_absolute():
             bp = path.parent / bp
         try:
-            data = read_toml(bp)
+            data = resolve_extends(read_toml(bp), bp.parent)
         except ConfigError as err:
             raise ConfigError(f"{where}: base: {err}") from None
     elif isinstance(base, dict):
-        data = copy.deepcopy(base)
+        try:  # an inline [base] may extend a preset or a file (relative to the sweep file)
+            data = resolve_extends(copy.deepcopy(base), path.parent)
+        except ConfigError as err:
+            raise ConfigError(f"{where}: base: {err}") from None
     else:
         raise ConfigError(
             f"{where}: base = {base!r} must be a file name (string) or a table of configuration "
@@ -195,11 +209,16 @@ def _read_status(d: Path) -> str | None:
 
 def _plan(m: Member) -> None:
     """Decide whether ``m`` is skipped, resumed or run from the start."""
+    from .io.outdir import RESUME_MAY_DIFFER, config_differences
+
     status = _read_status(m.dir)
-    try:
-        same = (m.dir / "config.toml").read_text() == m.config.to_toml()
-    except OSError:
+    try:  # the member's run has its configuration (grid.threads = 1 in a sweep, progress, …)
+        saved = load_config(m.dir / "config.toml")
+    except ConfigError:
         same = False
+    else:
+        ignore = tuple(k for k in RESUME_MAY_DIFFER if k != "time.end")
+        same = not config_differences(saved, m.config, may_differ=ignore)
     if status == "completed" and same and (m.dir / "profiles.nc").exists():
         m.action, m.status = "skip", "completed"
     elif (
@@ -220,16 +239,24 @@ def run_member(config: dict[str, Any], out_dir: str, resume: bool) -> dict[str, 
         import numba
 
         numba.set_num_threads(1)
+        from .io.outdir import OutLock, prepare_out_dir, remove_own_files
         from .simulation import Simulation
 
         # one thread per member (one member per core), recorded as such in its run.json
         config = {**config, "grid": {**config.get("grid", {}), "threads": 1}}
         cfg = validate_data(config)
-        res = Simulation(cfg, out_dir=out_dir).run(resume=resume, progress=False)
+        prepare_out_dir(out_dir)
+        with OutLock(out_dir):  # another process running this member: LockedError
+            if not resume:  # a member that runs from the start leaves no stale file behind
+                remove_own_files(out_dir)
+            res = Simulation(cfg, out_dir=out_dir).run(resume=resume, progress=False, lock=False)
         info = res.info
         msg = (info.get("failure") or {}).get("message", "")
         return {"status": res.status, "exit_code": res.exit_code, "message": msg,
                 "time": info.get("time"), "wall_time_s": _time.perf_counter() - t0}  # fmt: skip
+    except ConfigError as err:  # the member's folder is unusable or locked: do not touch it
+        return {"status": "failed", "exit_code": EXIT_INVALID, "message": str(err),
+                "time": None, "wall_time_s": _time.perf_counter() - t0}  # fmt: skip
     except Exception as err:  # an unexpected error fails this member, not the sweep
         msg = f"{type(err).__name__}: {err}"
         info = {"status": "failed", "segmpm_version": __version__,

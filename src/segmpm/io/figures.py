@@ -11,6 +11,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import xarray as xr  # noqa: E402
 
+from .atomic import write_with  # noqa: E402
+
 PANELS = (
     ("phi_small", "small-grain fraction φ_s"),
     ("velocity_x", "downslope velocity u (m/s)"),
@@ -22,9 +24,10 @@ PANELS = (
 
 
 def plot_profiles(ds: xr.Dataset, path: str | Path, title: str = "") -> Path:
-    """Depth profiles at every output time, one panel per variable."""
+    """Depth profiles at every output time, one panel per variable, written atomically to
+    ``path`` (PNG; a failed write raises :class:`~segmpm.io.atomic.OutputWriteError` and leaves
+    the previous figure and no temporary file)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     names = [p for p in PANELS if p[0] in ds.data_vars]
     fig, axes = plt.subplots(2, 3, figsize=(12, 7), sharey=True)
     y_mm = ds["y"].values * 1e3
@@ -48,6 +51,8 @@ def plot_profiles(ds: xr.Dataset, path: str | Path, title: str = "") -> Path:
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        write_with(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+    finally:
+        plt.close(fig)
     return path

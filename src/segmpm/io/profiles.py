@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +12,35 @@ import xarray as xr
 
 from ..analysis.profiles import PROFILE_VARIABLES, SCALAR_VARIABLES
 from .atomic import write_with
+
+
+def netcdf_bytes(ds: xr.Dataset) -> bytes:
+    """``ds`` as the bytes of a NetCDF-4 (HDF5) file, built in memory.
+
+    The file is then written with plain Python I/O: when the HDF5 library itself meets a write
+    error (a full disk, a file-size limit), h5netcdf's close after the error can crash the
+    interpreter (a segmentation fault in h5py), so HDF5 never writes to disk here."""
+    buf = io.BytesIO()
+    with _local_locks():
+        ds.to_netcdf(buf, engine="h5netcdf")
+    return buf.getvalue()
+
+
+def _local_locks():
+    """Inside a dask.distributed worker (a sweep member) xarray would guard the write with a
+    distributed lock named by the file, which fails for an in-memory file: the write of one
+    member's own file needs only this process's locks."""
+    if "dask" not in sys.modules:
+        return contextlib.nullcontext()
+    import dask
+
+    return dask.config.set(scheduler="synchronous")
+
+
+def write_netcdf(path: str | Path, ds: xr.Dataset) -> None:
+    """Atomically write ``ds`` to ``path`` (NetCDF-4, h5netcdf engine)."""
+    data = netcdf_bytes(ds)
+    write_with(path, lambda tmp: tmp.write_bytes(data))
 
 
 class ProfileWriter:
@@ -34,7 +66,11 @@ class ProfileWriter:
         self.times.append(float(time))
         self.rows.append({k: np.asarray(v, dtype=np.float64) for k, v in profiles.items()})
         self.scalars.append(dict(scalars or {}))
-        self.write()
+        try:
+            self.write()
+        except BaseException:  # the file still holds the previous times: so does the writer
+            del self.times[-1], self.rows[-1], self.scalars[-1]
+            raise
 
     def dataset(self) -> xr.Dataset:
         """The profiles as an xarray Dataset."""
@@ -67,8 +103,7 @@ class ProfileWriter:
 
     def write(self) -> None:
         """Atomically (re)write the NetCDF file."""
-        ds = self.dataset()
-        write_with(self.path, lambda tmp: ds.to_netcdf(tmp, engine="h5netcdf"))
+        write_netcdf(self.path, self.dataset())
 
     def restore(self, until: float) -> None:
         """Reload the profiles already written up to time ``until`` (resume)."""

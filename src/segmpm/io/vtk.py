@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
@@ -11,7 +10,7 @@ import numpy as np
 from pyevtk.hl import pointsToVTK
 
 from ..state import D_DRIVER, D_INERTIAL, D_PRESSURE, D_SHEAR_RATE, State
-from .atomic import write_text
+from .atomic import remove_quietly, write_text, write_with
 
 
 class VTKSeries:
@@ -27,7 +26,6 @@ class VTKSeries:
         from ..analysis.profiles import point_fluidity
 
         mu, g = point_fluidity(st, nonlocal_)
-        self.folder.mkdir(parents=True, exist_ok=True)
         name = f"particles_{len(self.entries):04d}.vtu"
         n = st.n
         data = {
@@ -44,20 +42,28 @@ class VTKSeries:
             "stress_ratio": np.ascontiguousarray(mu),
             "fluidity": np.ascontiguousarray(g),
         }
-        fd, tmp = tempfile.mkstemp(prefix=".vtk.", dir=self.folder)
-        os.close(fd)
-        os.unlink(tmp)
-        written = pointsToVTK(
-            tmp,
-            np.ascontiguousarray(st.x[0]),
-            np.ascontiguousarray(st.x[1]),
-            np.zeros(n),
-            data=data,
-        )
-        os.replace(written, self.folder / name)
+        target = self.folder / name
+
+        def _write(tmp: Path) -> None:
+            # pyevtk appends ".vtu" to the name it is given; that file is renamed onto ``tmp`` (and
+            # removed if anything fails, so no temporary .vtu is left behind)
+            base = str(tmp) + ".evtk"
+            written = base + ".vtu"
+            try:
+                pointsToVTK(base, np.ascontiguousarray(st.x[0]), np.ascontiguousarray(st.x[1]),
+                            np.zeros(n), data=data)  # fmt: skip
+                os.replace(written, tmp)
+            finally:
+                remove_quietly(written)
+
+        write_with(target, _write)
         self.entries.append((float(time), name))
-        self._write_pvd()
-        return self.folder / name
+        try:
+            self._write_pvd()
+        except BaseException:
+            del self.entries[-1]
+            raise
+        return target
 
     def _write_pvd(self) -> None:
         rows = "\n".join(

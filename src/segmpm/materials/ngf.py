@@ -37,7 +37,6 @@ from .params import (
     DRIVER_A,
     DRIVER_B,
     DRIVER_C,
-    DRIVER_G,
     DRIVER_P,
     M_A,
     M_C,
@@ -69,9 +68,9 @@ from .params import (
 SEED_FRACTION = 1.0e-3
 
 
-#: Newton iterations of ``return_factor`` (from the explicit estimate; 4 reach round-off for
-#: trial states up to 1.5 times past the convexity limit and G Δt g/p up to 10³)
-RETURN_ITERATIONS = 4
+#: Newton iterations of ``return_factor`` (from the explicit estimate; 6 reach round-off for
+#: a2 ≤ 2 (a0 + k) and G Δt g/p up to 10³, tests/test_nonlocal.py)
+RETURN_ITERATIONS = 6
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -81,10 +80,10 @@ def return_factor(a0, a2, k):
     p(f) = a0 + a2 f² (a0 = 2.5 A I₁^{3/2}, a2 = ½ C I₂,tr/√I₁, k = G Δt g). It is τ = τ_tr
     p/(p + G Δt g) with p the pressure of the returned state, so that a steady shear gives
     γ̇ = g τ/p exactly. The cubic a2 f²(f − 1) + (a0 + k) f − a0 = 0 has one root in (0, 1]
-    (it increases there: a2 ≤ a0 on the convex side); Newton from f = p_tr/(p_tr + k), a fixed
-    number of iterations, so the loop stays branch-free."""
-    ptr = a0 + a2
-    f = ptr / (ptr + k)
+    (it increases there when a2 < 3 (a0 + k): its slope a2 f(3f − 2) + a0 + k ≥ a0 + k − a2/3;
+    the caller keeps a2 ≤ 2 (a0 + k)); Newton from f = a0/(a0 + k), a fixed number of
+    iterations, so the loop stays branch-free."""
+    f = a0 / (a0 + k)  # a lower bound of the root (the cubic is ≤ 0 there)
     for _ in range(RETURN_ITERATIONS):
         r = a2 * f * f * (f - 1.0) + (a0 + k) * f - a0
         d = a2 * f * (3.0 * f - 2.0) + a0 + k
@@ -112,24 +111,30 @@ def ngf_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, g
     e0zz = ezz - t3
     e0xy = exy
     I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz + 2.0 * e0xy * e0xy)
-    # convexity guard of the energy on the trial state (not the yield criterion here: q_φ exceeds
-    # the flow's μ): it keeps a2 ≤ a0 in the return, whose root is then unique
-    cap = prm[M_CAPR] * I1
-    over = I2 > cap * cap
-    s = cap / fsqrt(I2) if over else 1.0
-    e0xx *= s
-    e0yy *= s
-    e0zz *= s
-    e0xy *= s
-    I2 = cap * cap if over else I2
     sq = fsqrt(I1)
     isq = 1.0 / sq
-    f = return_factor(2.5 * A * I1 * sq, 0.5 * C * I2 * isq, 0.5 * C * sq * dt * gf)
+    a0 = 2.5 * A * I1 * sq
+    k = 0.5 * C * sq * dt * gf
+    # the implicit return acts on the trial state as it is (a flowing point's trial state lies
+    # past the convexity limit by G Δt g/p, which is not small on a coarse step); only a trial
+    # state so far out that the return's cubic could have several roots (a2 > 2 (a0 + k), see
+    # return_factor) is first pulled back onto a2 = 2 (a0 + k)
+    lim = 4.0 * (a0 + k) * isq / C
+    over = I2 > lim
+    s = fsqrt(lim / I2) if over else 1.0
+    I2 = lim if over else I2
+    f = s * return_factor(a0, 0.5 * C * I2 * isq, k)
+    I2 *= (f / s) * (f / s)
+    # convexity guard of the energy on the returned state (not the yield criterion here: q_φ
+    # exceeds the flow's μ, so it acts on a static point loaded past it, or an overshoot)
+    cap = prm[M_CAPR] * I1
+    over = I2 > cap * cap
+    f *= cap / fsqrt(I2) if over else 1.0
+    I2 = cap * cap if over else I2
     e0xx *= f
     e0yy *= f
     e0zz *= f
     e0xy *= f
-    I2 *= f * f
     third = I1 * THIRD
 
     pe = 2.5 * A * I1 * sq + 0.5 * C * I2 * isq
@@ -263,25 +268,26 @@ def ngf_update_np(prm, L, dt, eps, J, phi, gf):
     sq = np.sqrt(I1p)
     E0 = E3 - np.trace(E3, axis1=1, axis2=2)[:, None, None] / 3.0 * eye
     I2 = 0.5 * np.einsum("nij,nij->n", E0, E0)
-    cap = prm[M_RC] * I1p / prm[M_QPHI]
-    scale = np.where(I2 > cap**2, cap / np.sqrt(np.where(I2 > 0, I2, 1.0)), 1.0)
-    E0 = E0 * scale[:, None, None]
+    a0 = 2.5 * A * I1p**1.5
+    k = 0.5 * C * sq * dt * gf
+    lim = 4.0 * (a0 + k) / (C * sq)  # a2 ≤ 2 (a0 + k): the return's root is unique
+    pull = np.where(I2 > lim, np.sqrt(lim / np.where(I2 > 0, I2, 1.0)), 1.0)
+    I2 = np.minimum(I2, lim)
+    factor = return_factor_np(a0, 0.5 * C * I2 / sq, k)
+    I2 = I2 * factor**2
+    cap = prm[M_RC] * I1p / prm[M_QPHI]  # the convexity guard on the returned state
+    factor = factor * pull * np.where(I2 > cap**2, cap / np.sqrt(np.where(I2 > 0, I2, 1.0)), 1.0)
     I2 = np.minimum(I2, cap**2)
-    factor = return_factor_np(2.5 * A * I1p**1.5, 0.5 * C * I2 / sq, 0.5 * C * sq * dt * gf)
     E0 = E0 * factor[:, None, None]
     E0[gas] = 0.0
-    I2 = np.where(gas, 0.0, I2 * factor**2)
+    I2 = np.where(gas, 0.0, I2)
     Enew = E0 - (I1 / 3.0)[:, None, None] * eye
     pe = np.where(gas, 0.0, 2.5 * A * I1p**1.5 + 0.5 * C * I2 / sq)
     dbar = phi * prm[M_DS] + (1.0 - phi) * prm[M_DL]
     c = np.where(gas, 0.0, np.sqrt((3.75 * A + 2.0 * C) * sq / rho))
     zeta = prm[M_ZETA] * rho * c * prm[M_H]
     trd = np.trace(D3, axis1=1, axis2=2)
-    S3 = (
-        -pe[:, None, None] * eye
-        + (C * sq)[:, None, None] * E0
-        + (zeta * trd)[:, None, None] * eye
-    )
+    S3 = -pe[:, None, None] * eye + (C * sq)[:, None, None] * E0 + (zeta * trd)[:, None, None] * eye
     S3[gas] = 0.0
     inertial = np.where(pe > 0, gdot * dbar / np.sqrt(np.where(pe > 0, pe, 1.0) / rho_s), 0.0)
     drv = int(prm[M_DRIVER])
@@ -331,8 +337,11 @@ def local_fluidity_np(mu, p, dbar, rho_s, mu_s, b, p_min=0.0):
     mu, p, dbar = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (mu, p, dbar)))
     ok = (p > 0) & (mu > mu_s)
     with np.errstate(invalid="ignore", divide="ignore"):
-        g = np.sqrt(np.maximum(np.where(ok, p, 0.0), p_min) / rho_s) / dbar * (mu - mu_s) / (
-            b * np.where(ok, mu, 1)
+        g = (
+            np.sqrt(np.maximum(np.where(ok, p, 0.0), p_min) / rho_s)
+            / dbar
+            * (mu - mu_s)
+            / (b * np.where(ok, mu, 1))
         )
     return np.where(ok, g, 0.0)
 

@@ -354,7 +354,9 @@ def fluidity_step_np(x, mass, phi, sig, pres, gf, gp, mp, dt):
             wsum = Wk.sum(axis=(1, 2))
             gflip = gnew + np.sum(W * inc[I, Jn], axis=(1, 2))
             with np.errstate(invalid="ignore", divide="ignore"):
-                gpic = np.sum(Wk * np.where(seen, g, 0.0)[I, Jn], axis=(1, 2)) / np.where(wsum > 0, wsum, 1)
+                gpic = np.sum(Wk * np.where(seen, g, 0.0)[I, Jn], axis=(1, 2)) / np.where(
+                    wsum > 0, wsum, 1
+                )
             gb = np.where(wsum > 0, (1 - PIC) * gflip + PIC * gpic, gflip)
             gnew = np.where(np.asarray(gf) > 0, np.maximum(TINY, gb), np.maximum(0.0, gb))
     mu = stress_ratio_np(sig, pres)

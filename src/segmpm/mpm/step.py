@@ -30,6 +30,7 @@ from ..materials import (
 from ..materials.params import M_FLU_DT
 from ..segregation.closures import P_DT_TARGET, P_MODEL
 from ..segregation.grid import concentration_step
+from .fluidity import fluidity_step
 from .params import (
     G_CFL,
     G_CFLOOR,
@@ -64,7 +65,6 @@ from .params import (
     TRANSFER_AFLIP,
     TRANSFER_FLIP,
 )
-from .fluidity import fluidity_step
 from .transfer import (
     counting_sort,
     fold_images,

@@ -34,12 +34,12 @@ from segmpm.segregation.closures import (
     P_FAN_D,
     P_FAN_S,
     P_FILL_MIN,
-    P_LH_CDIFF,
-    P_LH_CP,
-    P_LH_CSEG,
     P_FLUX,
     P_GX,
     P_GY,
+    P_LH_CDIFF,
+    P_LH_CP,
+    P_LH_CSEG,
     P_MODEL,
     P_Q,
     P_Q_SHEAR,
@@ -112,7 +112,9 @@ def face_velocity_diffusivity_np(
         dbar = 0.5 * (dbar_a + dbar_b)
         w = -prm[P_LH_CSEG] * (g_b - g_a) / hc
         with np.errstate(invalid="ignore", divide="ignore"):
-            w = w + np.where(pf > 0, prm[P_LH_CP] * gdot / np.where(pf > 0, pf, 1) * (s_b - s_a) / hc, 0)
+            w = w + np.where(
+                pf > 0, prm[P_LH_CP] * gdot / np.where(pf > 0, pf, 1) * (s_b - s_a) / hc, 0
+            )
         return w * dbar**2, prm[P_LH_CDIFF] * gdot * dbar**2
     if model == M_FAN2014:
         gdot = 0.5 * (g_a + g_b)

@@ -67,7 +67,9 @@ def steady(F, t_lo=4.0, t_hi=8.0):
     P = B.window_mean(F, t_lo, t_hi)
     with np.errstate(invalid="ignore", divide="ignore"):
         P["pzz"] = -P["szz"]
-        P["I_zz"] = P["gdot"] * P["dbar"] / np.sqrt(np.where(P["pzz"] > 0, P["pzz"], np.nan) / B.RHO_S)
+        P["I_zz"] = (
+            P["gdot"] * P["dbar"] / np.sqrt(np.where(P["pzz"] > 0, P["pzz"], np.nan) / B.RHO_S)
+        )
     return P, B.surface(P)
 
 
@@ -313,7 +315,8 @@ def fit_F(out):
     F_ = float(np.sum(X * X) / np.sum(X * Y))  # δv = (g d̄)/F, least squares in 1/F
     out["fluctuation"] = dict(
         definition="dv = sqrt(tr <v'v'>) over the bin (three components); g = gdot/mu",
-        F=F_, kappa_g=1.0 / F_**2,
+        F=F_,
+        kappa_g=1.0 / F_**2,
         rms_relative_residual=float(np.sqrt(np.mean((Y - X / F_) ** 2)) / np.mean(Y)),
         n_bins=int(len(X)),
     )
@@ -346,6 +349,7 @@ def flux_samples(name, smooth=2.0):
         phi = np.clip(mid["phi_small"], 0, 1)
         dbar = mid["dbar"]
         g = gdot / np.where(mid["mu_inv"] > 0.05, mid["mu_inv"], np.nan)
+
         # fields at the bin tops (the faces of J)
         def face(a):
             return 0.5 * (a + np.roll(a, -1))
@@ -389,7 +393,10 @@ def fit_segregation(out):
         return X[ok], J[ok]
 
     res = {}
-    for key, labels in (("lh", ["C_seg", "C_p", "C_diff"]), ("ht", ["kappa_g_bk_minus_bc_over_c_D", "minus_b_c_over_c_D", "eta_over_c_D"])):
+    for key, labels in (
+        ("lh", ["C_seg", "C_p", "C_diff"]),
+        ("ht", ["kappa_g_bk_minus_bc_over_c_D", "minus_b_c_over_c_D", "eta_over_c_D"]),
+    ):
         X, J = gather(train, key)
         if X is None:
             continue
@@ -439,9 +446,13 @@ def main() -> int:
     except Exception as exc:  # noqa: BLE001
         print("plot failed:", exc)
     lin = out["mu_of_I"]["linear"]
-    print(f"mu(I): mu_s = {lin['mu_s']:.4f} ± {lin['mu_s_se']:.4f}, b = {lin['b']:.4f} ± {lin['b_se']:.4f}")
+    print(
+        f"mu(I): mu_s = {lin['mu_s']:.4f} ± {lin['mu_s_se']:.4f}, b = {lin['b']:.4f} ± {lin['b_se']:.4f}"
+    )
     for k, v in out["wall_friction"].items():
-        print(f"{k}: mu_0 {v['mu_0']:.3f} mu_inf {v['mu_inf']:.3f} u_w {v['u_w']:.4f} K_w {v['K_w_mean']:.3f}")
+        print(
+            f"{k}: mu_0 {v['mu_0']:.3f} mu_inf {v['mu_inf']:.3f} u_w {v['u_w']:.4f} K_w {v['K_w_mean']:.3f}"
+        )
     print("h_stop joint:", out["h_stop"].get("joint_fit"))
     print("ngf:", out.get("ngf"))
     print("ngf (profiles + h_stop):", out.get("ngf_profiles"))
@@ -468,7 +479,7 @@ def plot(out, a):
     ax[0].plot(x, j["mu_s"] + (j["mu_2"] - j["mu_s"]) / (1 + j["I_0"] / x), "k--", label="Jop")
     ax[0].set(xlabel="I", ylabel="μ = −σ_xz/σ_zz", title="steady inclines (no sidewalls)")
     ax[0].legend(fontsize=7)
-    for k, v in out["wall_friction"].items():
+    for _k, v in out["wall_friction"].items():
         u = np.array(v["data"]["u"])
         ax[1].plot(u, v["data"]["ratio"], ".", label=f"μ_gw = {v['grain_wall_friction']}")
         x = np.linspace(0, u.max(), 100)
@@ -483,8 +494,9 @@ def plot(out, a):
     ex = np.tan(np.radians(th)) - j["mu_s"]
     Hs = np.where(ex > 0, 0.5 * np.pi * j["A"] * D_BAR / np.sqrt(np.abs(ex)), np.nan)
     ax[2].plot(th, 1e3 * Hs, "k-", label=f"NGF fit: μ_s = {j['mu_s']:.3f}, A = {j['A']:.2f}")
-    ax[2].errorbar([r["theta_mid"] for r in ok], [1e3 * r["H"] for r in ok], xerr=0.25, fmt="none",
-                   ecolor="C0")
+    ax[2].errorbar(
+        [r["theta_mid"] for r in ok], [1e3 * r["H"] for r in ok], xerr=0.25, fmt="none", ecolor="C0"
+    )
     ax[2].set(xlabel="θ (°)", ylabel="H_stop (mm)", ylim=(0, 40), title="h_stop")
     ax[2].legend(fontsize=7)
     fig.tight_layout()
@@ -503,7 +515,9 @@ def export_reference(name: str, times=(0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8
     path = RUNS / name / "reference_profiles.csv"
     with open(path, "w") as fh:
         fh.write(f"# DEM calibration run {name} (validation/dem/calibration), binned diag_z\n")
-        fh.write("# y_m from the datum (mean top of the glued layer); window: the 0.5 s ending at time_s\n")
+        fh.write(
+            "# y_m from the datum (mean top of the glued layer); window: the 0.5 s ending at time_s\n"
+        )
         fh.write("time_s,y_m,phi_small,velocity_x,solid_fraction,pressure,stress_ratio,fluidity\n")
         for T in times:
             k = np.where(np.abs(F["time"] - T) < 1e-6)[0]
