@@ -131,7 +131,9 @@ def window_mean(F: dict[str, np.ndarray], t_lo: float, t_hi: float) -> dict[str,
     dz = float(np.median(np.diff(F["zeta"])))
     out["gdot"] = np.abs(np.gradient(out["u"], dz))
     with np.errstate(invalid="ignore", divide="ignore"):
-        out["inertial"] = out["gdot"] * out["dbar"] / np.sqrt(np.where(out["p"] > 0, out["p"], np.nan) / RHO_S)
+        out["inertial"] = (
+            out["gdot"] * out["dbar"] / np.sqrt(np.where(out["p"] > 0, out["p"], np.nan) / RHO_S)
+        )
         out["g"] = out["gdot"] / out["mu_inv"]
     return out
 

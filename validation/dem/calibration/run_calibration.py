@@ -55,18 +55,35 @@ def _cases() -> dict[str, dict]:
     cases: dict[str, dict] = {}
     for th in (22.0, 24.0, 26.0, 28.0):
         cases[f"incline_{th:.0f}"] = dict(
-            kind="incline", walls=0, Lx=0.030, Ly=0.020, H=0.025, theta0=th,
+            kind="incline",
+            walls=0,
+            Lx=0.030,
+            Ly=0.020,
+            H=0.025,
+            theta0=th,
             schedule=[(th, 8.0)],
         )
     for mw in (0.30, 0.15):
         cases[f"wall_mu{round(mw * 100):03d}"] = dict(
-            kind="wall", walls=1, Lx=0.024, Ly=0.022, H=0.030, theta0=26.0, mu_w=mw,
+            kind="wall",
+            walls=1,
+            Lx=0.024,
+            Ly=0.022,
+            H=0.030,
+            theta0=26.0,
+            mu_w=mw,
             schedule=[(26.0, 8.0)],
         )
     for H in (0.004, 0.007, 0.011, 0.016, 0.022):
         sched = [(27.0, 2.0)] + [(27.0 - 0.5 * k, 1.5) for k in range(1, 23)]
         cases[f"hstop_{round(H * 1e4):03d}"] = dict(
-            kind="hstop", walls=0, Lx=0.024, Ly=0.016, H=H, theta0=27.0, schedule=sched,
+            kind="hstop",
+            walls=0,
+            Lx=0.024,
+            Ly=0.016,
+            H=H,
+            theta0=27.0,
+            schedule=sched,
             stop_vx=1.0e-3,
         )
     return cases
@@ -74,9 +91,17 @@ def _cases() -> dict[str, dict]:
 
 CASES = _cases()
 ORDER = [
-    "incline_22", "incline_24", "incline_26", "incline_28",
-    "wall_mu030", "wall_mu015",
-    "hstop_220", "hstop_160", "hstop_110", "hstop_070", "hstop_040",
+    "incline_22",
+    "incline_24",
+    "incline_26",
+    "incline_28",
+    "wall_mu030",
+    "wall_mu015",
+    "hstop_220",
+    "hstop_160",
+    "hstop_110",
+    "hstop_070",
+    "hstop_040",
 ]
 
 
@@ -89,8 +114,9 @@ def gz(path: str) -> None:
 def git_commit(paths: list[str], msg: str) -> None:
     for _ in range(5):
         subprocess.run(["git", "add", "-f", *paths], cwd=REPO, capture_output=True)
-        r = subprocess.run(["git", "commit", "-m", msg, "--", *paths], cwd=REPO,
-                           capture_output=True, text=True)
+        r = subprocess.run(
+            ["git", "commit", "-m", msg, "--", *paths], cwd=REPO, capture_output=True, text=True
+        )
         if r.returncode == 0 or "nothing" in r.stdout + r.stderr:
             return
         time.sleep(5)
@@ -105,10 +131,30 @@ def run_case(name: str, case: dict, lammps, autocommit: bool) -> None:
     shutil.rmtree(work, ignore_errors=True)
     os.makedirs(work)
     os.chdir(work)
-    args = ["-log", "log.lammps", "-screen", "none", "-var", "deck", DEM,
-            "-var", "Lxb", repr(case["Lx"]), "-var", "Lyb", repr(case["Ly"]),
-            "-var", "Hnom", repr(case["H"]), "-var", "walls", str(case["walls"]),
-            "-var", "theta0", repr(case["theta0"])]
+    args = [
+        "-log",
+        "log.lammps",
+        "-screen",
+        "none",
+        "-var",
+        "deck",
+        DEM,
+        "-var",
+        "Lxb",
+        repr(case["Lx"]),
+        "-var",
+        "Lyb",
+        repr(case["Ly"]),
+        "-var",
+        "Hnom",
+        repr(case["H"]),
+        "-var",
+        "walls",
+        str(case["walls"]),
+        "-var",
+        "theta0",
+        repr(case["theta0"]),
+    ]
     if "mu_w" in case:
         args += ["-var", "mu_w", repr(case["mu_w"])]
     lmp = lammps(cmdargs=args)
@@ -138,13 +184,19 @@ def run_case(name: str, case: dict, lammps, autocommit: bool) -> None:
             done += n
             step = lmp.extract_global("ntimestep")
             vx = lmp.extract_variable("vxm")
-            prog.write(f"{step * dt:.4f},{theta_now:g},{lmp.extract_compute('keF', 0, 0):.6e},"
-                       f"{vx:.6e},{lmp.extract_variable('ztop'):.6e}\n")
+            prog.write(
+                f"{step * dt:.4f},{theta_now:g},{lmp.extract_compute('keF', 0, 0):.6e},"
+                f"{vx:.6e},{lmp.extract_variable('ztop'):.6e}\n"
+            )
         if case["kind"] == "hstop":
             vx = lmp.extract_variable("vxm")
             if abs(vx) < case["stop_vx"]:
-                result = dict(theta_stop_deg=theta_now, theta_last_flowing_deg=theta_now + 0.5,
-                              vx_at_stop=vx, t_stop_s=step * dt)
+                result = dict(
+                    theta_stop_deg=theta_now,
+                    theta_last_flowing_deg=theta_now + 0.5,
+                    vx_at_stop=vx,
+                    t_stop_s=step * dt,
+                )
                 # one more 0.5 s window so that diag_z.txt holds the stopped state
                 lmp.command(f"run {round(0.5 / dt)} pre no post no")
                 break
@@ -156,13 +208,24 @@ def run_case(name: str, case: dict, lammps, autocommit: bool) -> None:
     lmp.close()
     for f in ("initial.dump", "final.dump"):
         gz(f)
-    meta = dict(name=name, case=case, counts=counts, dt=dt, t_end_s=step * dt,
-                wall_s=time.time() - t0, result=result, complete=True)
+    meta = dict(
+        name=name,
+        case=case,
+        counts=counts,
+        dt=dt,
+        t_end_s=step * dt,
+        wall_s=time.time() - t0,
+        result=result,
+        complete=True,
+    )
     json.dump(meta, open(meta_path, "w"), indent=1)
     print(f"{name}: done in {meta['wall_s']:.0f} s wall {result}", flush=True)
     if autocommit:
-        files = [os.path.relpath(os.path.join(work, f), REPO) for f in sorted(os.listdir(work))
-                 if not f.startswith("restart")]
+        files = [
+            os.path.relpath(os.path.join(work, f), REPO)
+            for f in sorted(os.listdir(work))
+            if not f.startswith("restart")
+        ]
         git_commit(files, f"DEM calibration: {name}")
 
 
