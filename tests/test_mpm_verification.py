@@ -194,11 +194,12 @@ def test_counting_sort_is_the_stable_sort(threads, chunks):
     cursor[:5000] = 7  # a long run of one strip across a chunk boundary
     strip_start = np.zeros(ns + 1, dtype=np.int64)
     order = np.full(cursor.size, -1, dtype=np.int32)
+    before = numba.get_num_threads()
     numba.set_num_threads(threads)
     try:
         counting_sort(cursor, strip_start, order, chunks)
     finally:
-        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        numba.set_num_threads(before)  # the suite's setting (conftest), not the pool size
     np.testing.assert_array_equal(order, np.argsort(cursor, kind="stable"))
     offsets = np.concatenate([[0], np.cumsum(np.bincount(cursor, minlength=ns))])
     np.testing.assert_array_equal(strip_start, offsets)

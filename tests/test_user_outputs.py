@@ -34,7 +34,8 @@ def finished_run(tmp_path_factory):
         args += ["--set", s]
     assert main(args) == 0
     sim = make_sim(RUN)
-    sim.advance_to(0.04)  # the same configuration: the state of the last snapshot
+    for t in (0.02, 0.04):  # the same configuration and stops: the state of the last snapshot
+        sim.advance_to(t)
     return out, sim.state
 
 
@@ -53,15 +54,11 @@ def test_vtk_series_reads_back_with_the_particles(finished_run):
         phi = mesh.point_data["phi_small"]
         assert np.all((phi >= 0) & (phi <= 1))
     last = meshio.read(out / "fields" / sets[-1].get("file"))
-    # the snapshot holds the state of the run: positions and speeds of an identical run
-    order = np.lexsort((st.x[0], st.x[1]))
-    got = np.lexsort((last.points[:, 0], last.points[:, 1]))
-    np.testing.assert_allclose(last.points[got, 0], st.x[0][order], rtol=0, atol=1e-12)
-    np.testing.assert_allclose(last.points[got, 1], st.x[1][order], rtol=0, atol=1e-12)
-    u = np.asarray(last.point_data["velocity_x"])
-    np.testing.assert_allclose(u[got], st.v[0][order], rtol=0, atol=1e-12)
-    p = np.asarray(last.point_data["pressure"])
-    np.testing.assert_allclose(p[got], st.diag[0][order], rtol=1e-12)
+    # the snapshot holds the state of the run: that of an identical run, point by point
+    np.testing.assert_allclose(last.points[:, 0], st.x[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(last.points[:, 1], st.x[1], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.ravel(last.point_data["velocity_x"]), st.v[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.ravel(last.point_data["pressure"]), st.diag[0], rtol=1e-12)
 
 
 def test_profile_figure_has_a_panel_per_variable(finished_run, monkeypatch):
@@ -90,21 +87,29 @@ def test_plot_of_a_folder_without_profiles_exits_2(tmp_path):
     assert main(["plot", str(tmp_path)]) == 2
 
 
-def test_flip_transfer_on_the_bagnold_closed_form():
-    """grid.transfer = "flip" (no affine part): the steady Bagnold profile of the local law
-    within 1 % in surface speed and RMS, as for the default transfer (tests/test_rheology_flows)."""
-    theta, H, h = 26.0, 0.006, 5e-4
+def _bagnold_surface_ratio(h: float, transfer: str) -> float:
+    theta, H = 26.0, 0.006
     sim = make_sim([f"geometry.slope_deg={theta}", f"geometry.depth={H}",
                     f"geometry.length={4 * h}", f"grid.cell_size={h}",
                     "boundary.sidewall_friction=0.0", "material.stiffness_scale=1e-3",
-                    "segregation.model='none'", "grid.transfer='flip'"])  # fmt: skip
+                    "segregation.model='none'", f"grid.transfer='{transfer}'"])  # fmt: skip
     sim.advance_to(0.6)
     st = sim.state
-    rows = np.unique(np.round(st.x[1], 9))
-    u = np.array([st.v[0][np.abs(st.x[1] - r) < 1e-9].mean() for r in rows])
+    top = st.x[1].max()
+    u = st.v[0][np.abs(st.x[1] - top) < 1e-9].mean()
     a, qc, f, g, dbar = 0.46, 0.38 * 2 * 0.95 / (1 + 0.95**2), 0.6, 9.81, 2.5e-3
     inert = (math.tan(math.radians(theta)) - qc) / a
     k = 2 * inert / (3 * dbar) * math.sqrt(f * g * math.cos(math.radians(theta)))
-    th = k * (H**1.5 - np.clip(H - rows, 0, None) ** 1.5)
-    assert abs(u[-1] / th[-1] - 1) < 0.01, (u[-1], th[-1])
-    assert np.sqrt(np.mean((u - th) ** 2)) / th[-1] < 0.01
+    return u / (k * (H**1.5 - max(H - top, 0.0) ** 1.5))
+
+
+def test_flip_transfer_converges_to_the_bagnold_closed_form():
+    """grid.transfer = "flip" (MUSL, FLIP/PIC blend, no affine part) is dissipative at first
+    order in h on a steady shear flow: its error on the Bagnold surface speed halves when h
+    halves (ratio 2 ± 0.4) and the Richardson extrapolation 2 u(h/2) − u(h) meets the closed form
+    within 1 %. (The default aflip is within 0.3 % at h = 0.5 mm, tests/test_rheology_flows.)"""
+    r1 = _bagnold_surface_ratio(5e-4, "flip")
+    r2 = _bagnold_surface_ratio(2.5e-4, "flip")
+    assert r1 < r2 < 1.0, (r1, r2)
+    assert 1.6 < (1 - r1) / (1 - r2) < 2.4, (r1, r2)
+    assert abs(2 * r2 - r1 - 1) < 0.01, (r1, r2)

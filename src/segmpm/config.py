@@ -38,8 +38,6 @@ class ScenarioConfig(_Section):
     """What is simulated; each kind builds its particles and boundaries from the other sections."""
 
     kind: Literal["chute", "collapse", "bar", "box"] = "chute"
-    #: Seed of the random generator (used only by scenarios that jitter points; runs stay reproducible).
-    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
     #: bar: initial velocity amplitude v0 of the first mode, m/s; box: uniform velocity (x), m/s.
     velocity: Annotated[float, Field(ge=-1e3, le=1e3, allow_inf_nan=False)] = 1e-3
 

@@ -119,7 +119,7 @@ def ngf_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, g
     # past the convexity limit by G Δt g/p, which is not small on a coarse step); only a trial
     # state so far out that the return's cubic could have several roots (a2 > 2 (a0 + k), see
     # return_factor) is first pulled back onto a2 = 2 (a0 + k)
-    lim = 4.0 * (a0 + k) * isq / C
+    lim = 4.0 * (a0 + k) * sq / C
     over = I2 > lim
     s = fsqrt(lim / I2) if over else 1.0
     I2 = lim if over else I2
@@ -270,7 +270,7 @@ def ngf_update_np(prm, L, dt, eps, J, phi, gf):
     I2 = 0.5 * np.einsum("nij,nij->n", E0, E0)
     a0 = 2.5 * A * I1p**1.5
     k = 0.5 * C * sq * dt * gf
-    lim = 4.0 * (a0 + k) / (C * sq)  # a2 ≤ 2 (a0 + k): the return's root is unique
+    lim = 4.0 * (a0 + k) * sq / C  # a2 = ½ C I₂/√I₁ ≤ 2 (a0 + k): a unique root
     pull = np.where(I2 > lim, np.sqrt(lim / np.where(I2 > 0, I2, 1.0)), 1.0)
     I2 = np.minimum(I2, lim)
     factor = return_factor_np(a0, 0.5 * C * I2 / sq, k)
