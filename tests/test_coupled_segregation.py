@@ -54,7 +54,8 @@ def test_conserved_bounded_and_moving(closure):
             "segregation.lh_C_p=0.1",
         ],  # fmt: skip
         # Bagnold flow (no sidewalls): S_A = μ_d p and S_B ∝ ρ(γ̇ d̄)² grow downward, so the reduced
-        # model lifts the small grains (physics.md §2.5) — the sign rule tested the other way round
+        # model lifts the small grains (docs/segregation.md §1) — the sign rule tested the other
+        # way round
         ["segregation.model='hill_tan_reduced'", "segregation.driver='A'"],
         ["segregation.model='hill_tan_reduced'", "segregation.driver='B'"],
     ],

@@ -1,4 +1,4 @@
-"""The Fei et al. (2016) model at the material-point level (physics.md §1, §4.4)."""
+"""The Fei et al. (2016) model at the material-point level (docs/model.md §1, §3)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,8 @@ C = 5 * QPHI**2 * A
 
 
 def test_stress_is_energy_derivative(rng):
-    """σ^e = ∂w_e/∂ε^e (physics.md (1.2)), by central finite differences, inside the convex region."""
+    """σ^e = ∂w_e/∂ε^e (docs/model.md §1), by central finite differences, inside the convex
+    region."""
     for _ in range(20):
         I1 = 10 ** rng.uniform(-6, -3)
         dev = rng.normal(size=(3, 3))

@@ -1,4 +1,7 @@
-"""MPM core verification: vibrating bar, free fall, conservation, periodic wrap (physics.md §4.4, §5.3)."""
+"""MPM core verification: vibrating bar, free fall, conservation, periodic wrap.
+
+Closed forms: docs/model.md §3; boundaries and transfers: docs/model.md §2.
+"""
 
 from __future__ import annotations
 
@@ -83,7 +86,7 @@ def test_bar_period_converges_with_refinement(bar_runs):
 
 def test_periodic_wave_period_second_order():
     """A standing longitudinal wave in a periodic bar (no boundaries): quadratic B-splines with
-    APIC converge at second order in h (physics.md §4.4)."""
+    APIC converge at second order in h (docs/model.md §3)."""
     errs = {}
     for cells in (8, 16, 32):
         h = 1.0 / cells

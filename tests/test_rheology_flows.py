@@ -1,4 +1,4 @@
-"""Flows of the Fei et al. model against closed forms (physics.md §4.1, §4.2, §4.4).
+"""Flows of the Fei et al. model against closed forms (docs/model.md §3).
 
 Tolerances: the steady Bagnold surface speed within 2 % and the sidewall chute within 5 % (the
 issue's), the profile shapes by RMS, and the stiffness scale by ≤ 1 %. The residual errors are
@@ -19,14 +19,14 @@ A_MU, QC, F, G, DBAR, W = 0.46, 0.38 * 2 * 0.95 / (1 + 0.95**2), 0.6, 9.81, 2.5e
 
 
 def bagnold(y, H, theta):
-    """u(y) of (4.1) with μ_eff = q_c + a I."""
+    """u(y) of the Bagnold layer with μ_eff = q_c + a I."""
     inert = (math.tan(math.radians(theta)) - QC) / A_MU
     k = 2 * inert / (3 * DBAR) * math.sqrt(F * G * math.cos(math.radians(theta)))
     return k * (H**1.5 - np.clip(H - y, 0, None) ** 1.5)
 
 
 def sidewall(y, H, theta, mu_w):
-    """u(y) of (4.2) and the flowing depth ζ_f."""
+    """u(y) of the sidewall-confined chute and the flowing depth ζ_f."""
     al = math.tan(math.radians(theta)) - QC
     be = mu_w / W
     zf = min(al / be, H)
@@ -98,7 +98,8 @@ def test_stiffness_scale_does_not_change_the_flow():
 def test_oedometric_column_K0_stress_and_strain():
     """A column on a rigid base, periodic sides (no lateral strain), settles under gravity from
     half its geostatic compaction. σ_yy carries the weight above, K₀ = (2.5A − C/6)/(2.5A + 5C/6)
-    = 0.767, and I₁ follows the oedometric law e = (−σ_yy/(2.5A + 5C/6))^{2/3} (physics.md §1.3)."""
+    = 0.767, and I₁ follows the oedometric law e = (−σ_yy/(2.5A + 5C/6))^{2/3} (closed forms:
+    docs/model.md §3)."""
     H, L = 0.01, 0.002
     sim = make_sim([
         "geometry.slope_deg=0", f"geometry.depth={H}", f"geometry.length={L}",
@@ -128,7 +129,7 @@ def test_oedometric_column_K0_stress_and_strain():
     np.testing.assert_allclose(syy.reshape(-1, 2).mean(1), above.reshape(-1, 2).mean(1), rtol=0.01)
     e = (-st.sig[1][inner] / (2.5 * Aa + 5 * Cc / 6)) ** (2 / 3)
     np.testing.assert_allclose(-np.log(st.J[inner]), e, rtol=0.01)
-    # settlement of the top: (3/5) H Δe at the base to first order in e (physics.md §4.4). With
+    # settlement of the top: (3/5) H Δe at the base to first order in e (docs/model.md §3). With
     # image nodes at the no-slip base it is within 1e-4; without them (first-order wall
     # kinematics, docs/model.md) it was +3 % at 20 cells over the depth
     top = y0 > y0.max() - 1e-9
@@ -191,7 +192,7 @@ def test_seed_strip_length_does_not_change_the_profiles():
 
 def test_closed_form_module_matches_the_test_oracle():
     """segmpm.analysis.closed_form (used by validation/chute_closed_form.py) gives the same
-    profiles as this file's independent transcription of physics.md (4.1)–(4.2)."""
+    profiles as this file's independent transcription of the closed forms (docs/model.md §3)."""
     from segmpm.analysis.closed_form import bagnold_velocity, sidewall_velocity
     from segmpm.config import load_config
 

@@ -1,6 +1,6 @@
 """Concentration kernel: agreement with the NumPy twin, conservation, boundedness, set-up.
 
-physics.md §5.7: Σ_p V⁰_p φ_p is conserved to round-off and 0 ≤ φ_p ≤ 1 always.
+docs/segregation.md §2 (k): Σ_p V⁰_p φ_p is conserved to round-off and 0 ≤ φ_p ≤ 1 always.
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def test_conservation_and_bounds_over_1e4_substeps() -> None:
     prm = make_params("hill_tan_reduced")
     phi = np.full(px0.size, 0.5)
     total0 = np.dot(vol0, phi)
-    # sidewall-chute driver S_A(ζ) = ρ g cosθ ζ (α − βζ) (physics.md §2.4), κ = 1
+    # sidewall-chute driver S_A(ζ) = ρ g cosθ ζ (α − βζ) (docs/segregation.md §1), κ = 1
     alpha, beta = np.tan(SLOPE) - 0.38, 0.3 / 0.022
     t_int = 0.05
     nsub = 0

@@ -1,7 +1,7 @@
-"""Concentration kernel against the reference solutions of physics.md §4.3.
+"""Concentration kernel against the reference solutions of docs/segregation.md §4.
 
-Shocks (Gray & Thornton 2005), zero-flux steady states (4.3), a transient with constant w and D
-against an independent fine-grid solution, and the sign / mirror rules of §2.4.
+Shocks (Gray & Thornton 2005), zero-flux steady states, a transient with constant w and D
+against an independent fine-grid solution, and the sign / mirror rules (docs/segregation.md §1).
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def test_gray_thornton_inviscid_shocks(hc: float) -> None:
 
 
 def _sidewall_driver(depth, kappa):
-    """κ S_A(ζ) = κ ρ g cosθ ζ (α − βζ), ζ = H − y (physics.md §2.4), zero below ζ_f."""
+    """κ S_A(ζ) = κ ρ g cosθ ζ (α − βζ), ζ = H − y (docs/segregation.md §1), zero below ζ_f."""
     alpha, beta = np.tan(SLOPE) - 0.38, 0.3 / 0.022
 
     def s_of_y(y):
@@ -94,9 +94,9 @@ def _sidewall_driver(depth, kappa):
     ids=["aligned", "jittered", "coarse"],
 )
 def test_steady_state_matches_closed_form(driver: str, hc: float, jitter: float) -> None:
-    """Long-time profile against (4.3): φ/(1−φ) = K exp(−b^{k,s} S/(ρη)); RMS ≤ 0.01.
+    """Long-time profile against the closed form φ/(1−φ) = K exp(−b^{k,s} S/(ρη)); RMS ≤ 0.01.
 
-    Points at the cell centres (aligned) reproduce (4.3) to round-off: the Scharfetter–Gummel
+    Points at the cell centres (aligned) reproduce it to round-off: the Scharfetter–Gummel
     zero-flux state is exact at any h_c. Jittered points and 2 × 2 points per cell (coarse)
     carry the sub-cell interpolation error of the tent mapping, O(h_c² φ'').
     """
@@ -165,7 +165,7 @@ def test_transient_convergence_order() -> None:
 
 
 def test_sign_small_grains_sink_when_s_grows_upward() -> None:
-    """∂S/∂y > 0 with b^{k,s} > 0: small grains sink (physics.md §2.4 sign rule)."""
+    """∂S/∂y > 0 with b^{k,s} > 0: small grains sink (the sign rule, docs/segregation.md §1)."""
     depth = 0.008
     px, py, vol0, cg, work = _column(0.002, depth, 0.25e-3, 0.25e-3)
     phi = np.full(px.size, 0.5)
@@ -182,7 +182,7 @@ def test_sign_small_grains_sink_when_s_grows_upward() -> None:
 
 @pytest.mark.parametrize("flux", ["sg", "upwind"])
 def test_flipping_bks_mirrors_profile(flux: str) -> None:
-    """b^{k,s} → −b^{k,s} maps φ → 1 − φ exactly for φ₀ = 0.5 (physics.md §4.3 item 4)."""
+    """b^{k,s} → −b^{k,s} maps φ → 1 − φ exactly for φ₀ = 0.5 (docs/segregation.md §4)."""
     depth = 0.008
     px, py, vol0, cg, work = _column(0.003, depth, 0.25e-3, 0.5e-3)
     s_of_y = _sidewall_driver(depth, kappa=0.3)
@@ -229,8 +229,9 @@ def test_closures_give_expected_direction() -> None:
 
 
 def test_sidewall_chute_surface_layer_thickness() -> None:
-    """Seed chute, proxy A at κ = 1 (physics.md §2.4): a φ > 0.9 layer forms at the free surface,
-    1.35 mm thick after 0.1 s and 1.85 mm after 0.5 s (the spec's independent computation)."""
+    """Seed chute, proxy A at κ = 1 (docs/segregation.md §1): a φ > 0.9 layer forms at the free
+    surface, 1.35 mm thick after 0.1 s and 1.85 mm after 0.5 s (an independent 1-D computation
+    made outside this code)."""
     depth, s = 0.0375, 0.25e-3
     px, py, vol0, cg, work = _column(0.012, depth, s, s, top_pad=0.3 * depth)
     phi = np.full(px.size, 0.5)

@@ -32,7 +32,7 @@ def _load(name: str):
     ],
 )
 def test_collapse_runout_within_20_percent_of_experiments(aspect):
-    """Lube et al. 2005 / Lajeunesse et al. 2005 scaling (physics.md §4.5)."""
+    """Lube et al. 2005 / Lajeunesse et al. 2005 scaling (docs/validation.md §2)."""
     r = _load("collapse_runout").run(aspect)
     assert abs(r["relative_error"]) < 0.2, r
     assert r["kinetic_energy_final_over_max"] < 1e-2  # the deposit has come to rest

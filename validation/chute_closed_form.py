@@ -1,4 +1,4 @@
-"""Chute runs through the CLI against the closed forms (physics.md §4.1–4.2), for any settings.
+"""Chute runs through the CLI against the closed forms (docs/model.md §3), for any settings.
 
 Each case is ``segmpm run`` with ``--set`` overrides of slope, depth, width, sidewall friction and
 stiffness scale (no segregation); the last profile of ``profiles.nc`` is compared with

@@ -1,4 +1,4 @@
-"""Column-collapse runout against the experimental scaling (physics.md §4.5).
+"""Column-collapse runout against the experimental scaling (docs/validation.md §2).
 
 Runs the `collapse` scenario (Fei et al. model, rough base, free-slip back wall, no sidewall
 friction, no segregation) for aspect ratios a = H0/L0 from 0.5 to 6 and compares the normalised

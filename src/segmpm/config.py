@@ -1,7 +1,8 @@
 """Configuration of a run: pydantic schema, TOML loading, ``--set`` overrides.
 
-Every key lives in one of the sections of ``shared/spec/interface.md``: ``scenario``, ``geometry``,
-``grid``, ``material``, ``mixture``, ``segregation``, ``boundary``, ``time``, ``output``.
+Every key lives in one of the sections of the public interface (README, "Configuration"):
+``scenario``, ``geometry``, ``grid``, ``material``, ``mixture``, ``segregation``, ``boundary``,
+``time``, ``output``.
 All quantities are SI. Unknown keys are rejected. The built-in default is the seed's chute case
 (Fei, Sun, Hill & Zhou 2017, §4) with the reduced-cost preset documented in the README.
 """
@@ -43,7 +44,7 @@ class ScenarioConfig(_Section):
 
 
 class GeometryConfig(_Section):
-    """Domain geometry. Chute: periodic strip ``length`` × ``depth`` on a slope (physics.md §0)."""
+    """Domain geometry. Chute: periodic strip ``length`` × ``depth`` on a slope (docs/model.md)."""
 
     #: incline angle θ, degrees (the slope frame: x downslope, y normal to the base).
     slope_deg: Annotated[float, Field(ge=0, lt=90, allow_inf_nan=False)] = 26.0
@@ -61,7 +62,7 @@ class GeometryConfig(_Section):
 
 
 class GridConfig(_Section):
-    """MPM background grid (physics.md §5.1)."""
+    """MPM background grid (docs/model.md §2)."""
 
     #: background cell size h, m.
     cell_size: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = 5.0e-4
@@ -81,7 +82,7 @@ class GridConfig(_Section):
 
 
 class MaterialConfig(_Section):
-    """Constitutive model: Fei et al. 2016 (physics.md §1) or linear elasticity (verification)."""
+    """Constitutive model: Fei et al. 2016 (docs/model.md §1) or linear elasticity (tests)."""
 
     model: Literal["fei2016", "linear_elastic"] = "fei2016"
     #: flow rule: "local" (the seed's yield cap + μ(I) dissipative stress, μ = q_c + a I^b) or
@@ -115,15 +116,15 @@ class MaterialConfig(_Section):
     #: μ_d(I) = a I^b.
     a: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = 0.46
     b: Annotated[float, Field(gt=0, le=2, allow_inf_nan=False)] = 1.0
-    #: factor on A and C (stiffness reduction, physics.md §1.7).
+    #: factor on A and C (stiffness reduction, docs/model.md §1, "Stiffness scale").
     stiffness_scale: Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)] = 1.0
-    #: r_c, yield cap on the deviatoric elastic strain at r_c I1/q_φ (physics.md §1.5).
+    #: r_c, yield cap on the deviatoric elastic strain at r_c I1/q_φ (docs/model.md §1, step 4).
     cap_ratio: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.95
     #: factor on σ^d (1 = standard μ(I) normalisation, 0.5 = the seed's literal formula).
     sigma_d_factor: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 1.0
     #: floor on the shear rate in μ_d for b < 1, 1/s.
     shear_rate_floor: Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)] = 1e-6
-    #: bulk viscosity ζ_b as a fraction of ρ c h (physics.md §5.5), 0 disables.
+    #: bulk viscosity ζ_b as a fraction of ρ c h (docs/model.md §1, step 9), 0 disables.
     bulk_viscosity: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.0
     #: initial state: "geostatic" (I1 from the oedometric law under the initial load: a lateral
     #: stress ratio K₀ < 1), "isotropic" (the same load as an isotropic pressure, no deviatoric
@@ -136,7 +137,7 @@ class MaterialConfig(_Section):
 
 
 class MixtureConfig(_Section):
-    """Binary mixture (physics.md §0)."""
+    """Binary mixture of small and large grains (docs/segregation.md §1)."""
 
     d_small: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 2.0e-3
     d_large: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 3.0e-3
@@ -153,7 +154,7 @@ class MixtureConfig(_Section):
 
 
 class SegregationConfig(_Section):
-    """Species transport on the extra Eulerian grid (physics.md §2, §5.7)."""
+    """Species transport on the extra Eulerian grid (docs/segregation.md)."""
 
     #: closure: the seed's reduced Hill–Tan Eq. 6 (default), the full vector Eq. 1, Gray–Thornton,
     #: Fan et al. 2014, or none.
@@ -206,7 +207,7 @@ class SegregationConfig(_Section):
 
 
 class BoundaryConfig(_Section):
-    """Boundaries (physics.md §3.3, §5.3–5.4)."""
+    """Boundaries (docs/model.md §2, "Boundaries" and "Sidewall friction")."""
 
     #: μ_w of the sidewall body force −(2 μ_w K_w p / W) v/|v| (0 disables it).
     sidewall_friction: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.3
@@ -232,7 +233,7 @@ class BoundaryConfig(_Section):
 
 
 class TimeConfig(_Section):
-    """Time integration (physics.md §5.5)."""
+    """Time integration (docs/model.md §1, "Wave speed and time step")."""
 
     #: simulated time to reach, s.
     end: Annotated[float, Field(gt=0, le=1e5, allow_inf_nan=False)] = 20.0
@@ -252,7 +253,7 @@ class TimeConfig(_Section):
 
 
 class OutputConfig(_Section):
-    """What a run writes (interface.md, "Outputs")."""
+    """What a run writes (README, "Outputs")."""
 
     #: output directory (``--out`` overrides it).
     dir: Annotated[str, Field(min_length=1, max_length=4096)] = "segmpm-out"

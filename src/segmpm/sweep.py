@@ -1,6 +1,6 @@
 """``segmpm sweep SWEEP.toml``: an ensemble of ordinary runs over parameter values, on dask.distributed.
 
-The sweep file (interface.md, "Sweeps")::
+The sweep file (the public interface; README, "Command line")::
 
     base = "chute.toml"            # relative to the sweep file; or an inline [base] table of
                                    # configuration sections; absent = the built-in default

@@ -53,7 +53,7 @@ def _common(cfg: Config) -> tuple[float, float, float, float, float]:
 
 
 def bagnold_velocity(cfg: Config, y: np.ndarray) -> np.ndarray:
-    """u(y) of the Bagnold layer of depth ``geometry.depth`` without sidewall friction (4.1)."""
+    """u(y) of the Bagnold layer of depth ``geometry.depth`` without sidewall friction."""
     theta, dbar, a, s, mu0 = _common(cfg)
     inert = (math.tan(theta) - mu0) / a
     if inert <= 0:
@@ -64,7 +64,7 @@ def bagnold_velocity(cfg: Config, y: np.ndarray) -> np.ndarray:
 
 
 def sidewall_velocity(cfg: Config, y: np.ndarray) -> tuple[np.ndarray, float]:
-    """u(y) and the flowing depth ζ_f of the sidewall-confined layer (4.2)."""
+    """u(y) and the flowing depth ζ_f of the sidewall-confined layer (above)."""
     theta, dbar, a, s, mu0 = _common(cfg)
     al = math.tan(theta) - mu0
     be = cfg.boundary.sidewall_friction * cfg.boundary.wall_normal_stress_ratio / cfg.geometry.width

@@ -1,6 +1,6 @@
 """``segmpm compare OUT_DIR REFERENCE.csv``: error norms of a run's depth profiles against a reference.
 
-Definitions (interface.md, "Reference profiles (CSV) read by compare"):
+Definitions (the public interface of ``compare``; README, "Command line"):
 
 * The reference CSV has the columns ``time_s, y_m, phi_small, velocity_x`` (extra columns are
   ignored; lines whose first non-blank character is ``#`` and blank lines are skipped; an empty

@@ -1,4 +1,4 @@
-"""Depth profiles binned normal to the base (interface.md ``profiles.nc``).
+"""Depth profiles binned normal to the base (``profiles.nc``; README, "Outputs").
 
 Each material point contributes to the bin that holds its centre. Averages are weighted by the
 points' reference (solid) volume, except velocity (mass-weighted; equal here because the grain

@@ -1,11 +1,12 @@
-"""Viscous–elastic–plastic granular model of Fei et al. (2016) as used in the seed (physics.md §1).
+"""Viscous–elastic–plastic granular model of Fei et al. 2016 as used in the seed (docs/model.md §1).
 
-* Jiang–Liu elastic energy w_e = A I₁^{5/2} + C I₁^{1/2} I₂ with I₂ = ½ ε⁰:ε⁰, C = 5 q_φ² A (1.1);
-  σ^e = −p_e 1 + C √I₁ ε⁰, p_e = 2.5 A I₁^{3/2} + ½ C I₂/√I₁ (1.2).
+* Jiang–Liu elastic energy w_e = A I₁^{5/2} + C I₁^{1/2} I₂ with I₂ = ½ ε⁰:ε⁰, C = 5 q_φ² A
+  (Jiang & Liu 2003; Sun et al. 2015);
+  σ^e = −p_e 1 + C √I₁ ε⁰, p_e = 2.5 A I₁^{3/2} + ½ C I₂/√I₁ (seed Eq. 3 corrected).
 * Objective (Jaumann) elastic predictor; I₁ = −ln J so the volumetric state cannot drift.
-* Yield cap √I₂ ≤ r_c I₁/q_φ on the deviatoric elastic strain (1.5), giving μ_eff = q_c + a I^b.
-* Dissipative stress σ^d = 2 a d̄^b ρ_s^{b/2} p_e^{1−b/2} γ̇^{b−1} d′ (1.3, division-free form) with
-  d̄ = φ_s d_s + (1 − φ_s) d_l of the material point.
+* Yield cap √I₂ ≤ r_c I₁/q_φ on the deviatoric elastic strain, giving μ_eff = q_c + a I^b.
+* Dissipative stress σ^d = 2 a d̄^b ρ_s^{b/2} p_e^{1−b/2} γ̇^{b−1} d′ (seed Eq. 4, division-free
+  form) with d̄ = φ_s d_s + (1 − φ_s) d_l of the material point.
 * Gas state: no stress when I₁ ≤ 0 (H(I₁) of the seed's Eq. 5), deviatoric strain reset.
 
 Strains and stresses are stored as (xx, yy, xy, zz): plane strain, tension positive. docs/model.md
@@ -47,7 +48,7 @@ from .params import (
 
 @njit(cache=True, error_model="numpy", inline="always")
 def jaumann_predictor(exx, eyy, exy, ezz, l00, l01, l10, l11, dt):
-    """ε^e + Δt (d + w ε^e − ε^e w): objective elastic predictor (physics.md §1.5 step 1)."""
+    """ε^e + Δt (d + w ε^e − ε^e w): objective elastic predictor (docs/model.md §1, step 1)."""
     dxy = 0.5 * (l01 + l10)
     om = 0.5 * (l01 - l10)
     nxx = exx + dt * (l00 + 2.0 * om * exy)
@@ -281,7 +282,7 @@ def elastic_energy(eps3: np.ndarray, A: float, C: float) -> float:
 
 
 def elastic_stress(eps3: np.ndarray, A: float, C: float) -> np.ndarray:
-    """σ^e = −p_e 1 + C √I₁ ε⁰ of a 3×3 elastic strain (physics.md (1.2))."""
+    """σ^e = −p_e 1 + C √I₁ ε⁰ of a 3×3 elastic strain (docs/model.md §1, step 5)."""
     I1 = -np.trace(eps3)
     E0 = eps3 + I1 / 3.0 * np.eye(3)
     I2 = 0.5 * np.sum(E0 * E0)
@@ -290,5 +291,5 @@ def elastic_stress(eps3: np.ndarray, A: float, C: float) -> np.ndarray:
 
 
 def oedometric_strain(p_yy: np.ndarray, A: float, C: float) -> np.ndarray:
-    """Compaction e ≥ 0 of ε^e = diag(0, −e, 0) carrying σ_yy = −p_yy (physics.md §1.3)."""
+    """Compaction e ≥ 0 of ε^e = diag(0, −e, 0) carrying σ_yy = −p_yy (docs/model.md §3)."""
     return (np.maximum(p_yy, 0.0) / (2.5 * A + 5.0 * C / 6.0)) ** (2.0 / 3.0)

@@ -16,7 +16,7 @@ KIND_FEI2016 = 1
 #: γ̇ᵖ = g μ instead of the yield cap and σ^d (``material.rheology = "nonlocal"``, docs/model.md)
 KIND_FEI2016_NGF = 2
 
-DRIVER_A = 0  # S = μ_d(I) p_e   (physics.md §2.4, default)
+DRIVER_A = 0  # S = μ_d(I) p_e   (seed Eq. 4 read as a scalar; docs/segregation.md §1)
 DRIVER_B = 1  # S = κ_T ρ (γ̇ d̄)²
 DRIVER_C = 2  # S = −σ^d_yy (literal seed; ≈ 0 in steady shear, diagnostic)
 DRIVER_P = 3  # S = p_e (the pressure: the Liu–Singh–Henann closure's pressure-gradient driver)

@@ -1,10 +1,10 @@
-"""Grid boundary conditions (physics.md §3.3, §5.3–5.4).
+"""Grid boundary conditions (docs/model.md §2).
 
 * periodic x: node indices wrap modulo N_x (in the transfers), points wrap modulo L_x;
 * base plane y = y_b and walls x = x_lo, x_hi: no-slip, free-slip (may separate), or Coulomb
   friction (Bardenhagen, Brackbill & Sulsky 2000) on the nodes at and beyond the plane;
 * sidewall friction of a 2-D chute: the Coulomb body force −(2 μ_w K_w p / W) v/|v|, which can
-  stop a node but never reverse it (3.1).
+  stop a node but never reverse it (Jop, Forterre & Pouliquen 2005).
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ def apply_bc(gp, xn, yn, vx, vy):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def sidewall_friction(vx, vy, dvmax):
-    """Coulomb update v ← v − min(|v|, Δv_max) v/|v| (physics.md §3.3): never reverses v."""
+    """Coulomb update v ← v − min(|v|, Δv_max) v/|v| (docs/model.md §2): never reverses v."""
     speed = math.sqrt(vx * vx + vy * vy)
     if speed <= dvmax:
         return 0.0, 0.0

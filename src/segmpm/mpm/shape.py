@@ -1,4 +1,4 @@
-"""Quadratic B-spline shape functions (physics.md §5.1; Steffen, Kirby & Berzins 2008).
+"""Quadratic B-spline shape functions (docs/model.md §2; Steffen, Kirby & Berzins 2008).
 
 In grid units ξ = (x − x0)/h, a point touches the three nodes ``base, base+1, base+2`` with
 ``base = floor(ξ − 0.5)``. The weights are C¹ and sum to one; their gradients sum to zero.

@@ -5,7 +5,8 @@ Per step (APIC/AFLIP): the strip sort, P2G (two colours), the grid update, and t
 the points, G2P with advection (``update_points``) and the material law with the step check
 (``update_stress``).
 
-The time step is recomputed every step from the current state (physics.md §5.5):
+The time step is recomputed every step from the current state (docs/model.md §1, "Wave speed and
+time step"):
 Δt = min(C_cfl h / max_p(c_p + |v_p|), C_ν h² / (2 max_p ν_p), Δt_max).
 """
 

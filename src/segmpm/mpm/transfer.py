@@ -1,4 +1,4 @@
-"""Particle ↔ grid transfers: P2G, grid momentum update, G2P (physics.md §5.2).
+"""Particle ↔ grid transfers: P2G, grid momentum update, G2P (docs/model.md §2).
 
 Points are struct-of-arrays: ``x`` (2, N), ``v`` (2, N), ``C`` (4, N) the APIC affine matrix
 (C00, C01, C10, C11), ``sig`` (4, N) Cauchy stress (xx, yy, xy, zz). Grid arrays are

@@ -1,4 +1,4 @@
-"""Scenario builders (physics.md §3.6 for the chute's initial and boundary conditions).
+"""Scenario builders (docs/model.md §1 "Initial state" and §2 "Boundaries" for the chute).
 
 Material points sit on a regular lattice, ``particles_per_cell`` per cell and direction; the
 lattice spacing is stretched slightly so that the body fills its nominal extent exactly. Every
@@ -60,7 +60,7 @@ GHOST = 3
 
 
 def gravity_vector(cfg: Config) -> tuple[float, float]:
-    """g in the slope frame: (g sin θ, −g cos θ) (physics.md §0)."""
+    """g in the slope frame: (g sin θ, −g cos θ) (x downslope, y normal to the base)."""
     th = math.radians(cfg.geometry.slope_deg)
     return cfg.time.gravity * math.sin(th), -cfg.time.gravity * math.cos(th)
 
@@ -169,7 +169,7 @@ def wave_speed_floor(cfg: Config, mp: np.ndarray, p_ref: float) -> float:
 
     The time step never uses a smaller wave speed (``G_CFLOOR``): a gas (stress-free) region has
     c = 0, and re-contact makes it stiff within one step. Fei model: the safe bound
-    √((3.75 A + 2 C) √I₁/ρ) at the oedometric I₁ of p_ref (physics.md §1.7); linear elastic: the
+    √((3.75 A + 2 C) √I₁/ρ) at the oedometric I₁ of p_ref (docs/model.md §1); linear elastic: the
     P-wave speed.
     """
     rho = cfg.material.solid_fraction * cfg.material.grain_density
@@ -184,7 +184,7 @@ def _ny(top: float, h: float) -> int:
 
 
 def build_chute(cfg: Config) -> State:
-    """Periodic layer of depth H on a slope θ with a no-slip base at y = 0 (physics.md §3)."""
+    """Periodic layer of depth H on a slope θ with a no-slip base at y = 0 (docs/validation.md)."""
     g = cfg.geometry
     h = cfg.grid.cell_size
     nx = round(g.length / h)
@@ -222,7 +222,7 @@ def build_box(cfg: Config) -> State:
 
 
 def build_bar(cfg: Config) -> State:
-    """Elastic bar of length L along x, fixed at x = 0, free at x = L (physics.md §4.4).
+    """Elastic bar of length L along x, fixed at x = 0, free at x = L (docs/model.md §3).
 
     Initial velocity v₀ sin(πx/2L) along x (``scenario.velocity``); no gravity, no sidewall force.
     """
@@ -243,7 +243,10 @@ def build_bar(cfg: Config) -> State:
 
 
 def build_collapse(cfg: Config) -> State:
-    """Column L₀ × H₀ against a wall at x = 0 on a rough base, domain [0, length] (physics.md §4.5)."""
+    """Column L₀ × H₀ against a wall at x = 0 on a rough base, domain [0, length].
+
+    Runout laws: docs/validation.md §2.
+    """
     g = cfg.geometry
     h = cfg.grid.cell_size
     spacing = h / cfg.grid.particles_per_cell

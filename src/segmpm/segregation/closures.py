@@ -1,6 +1,6 @@
 """Segregation closures: the face velocity w and diffusivity D of the small-grain flux.
 
-Every closure is written in the common form (physics.md §2.3, §5.7)
+Every closure is written in the common form (docs/segregation.md §1)
 
     Ψ = w φ(1−φ) − D ∇φ                         (small-grain volume flux per unit solid fraction f)
 
@@ -11,7 +11,7 @@ integer code stored in the parameter vector ``prm`` (never by a string in compil
 Closures (codes ``M_*``):
 
 * ``hill_tan_reduced`` (seed Eq. 6, the default): w = −(b^{k,s}/(c_D ρ)) ∂S/∂n, D = η/c_D.
-* ``hill_tan_full`` (seed Eq. 1 in the vector form (2.1) of physics.md, with
+* ``hill_tan_full`` (seed Eq. 1 in vector form, Hill & Tan 2014, with
   ψ^{c,s} = φ + b^{c,s}φ(1−φ) and ψ^{k,s} = φ + b^{k,s}φ(1−φ)):
   w = ((b^{c,s} − b^{k,s})/(c_D ρ)) ∂S/∂n − (b^{c,s}/c_D) g·n, D = η/c_D.
 * ``hill_tan_fluidity``: ``hill_tan_full`` with S = σ^k = κ_g ρ (g d̄)², the kinetic stress of the
@@ -28,10 +28,10 @@ Closures (codes ``M_*``):
   D = ``fan_D_coeff`` γ̇ d̄².
 * ``none``: no flux.
 
-ρ = f ρ_s is the bulk density, S the driving stress (the proxy of physics.md §2.4, already scaled by
-κ by the engine), γ̇ the shear rate, d̄ = φ d_s + (1−φ) d_l, g = (g sin θ, −g cos θ) the gravity
-vector in the slope frame. Face values of S-gradients are two-point differences; face values of γ̇
-and d̄ are averages of the two cells.
+ρ = f ρ_s is the bulk density, S the driving stress (the proxy of docs/segregation.md §1, already
+scaled by κ by the engine), γ̇ the shear rate, d̄ = φ d_s + (1−φ) d_l, g = (g sin θ, −g cos θ) the
+gravity vector in the slope frame. Face values of S-gradients are two-point differences; face
+values of γ̇ and d̄ are averages of the two cells.
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ MODEL_CODES: dict[str, int] = {
 
 # ---- face-flux codes (prm[P_FLUX]) -----------------------------------------------------------
 F_SG = 0  #: exponentially fitted Scharfetter–Gummel flux (default)
-F_UPWIND = 1  #: upwind segregation + central diffusion (kept as a switch, physics.md §5.7)
+F_UPWIND = 1  #: upwind segregation + central diffusion (kept as a switch, docs/segregation.md §2)
 FLUX_CODES: dict[str, int] = {"sg": F_SG, "upwind": F_UPWIND}
 
 # ---- driver codes (prm[P_DRIVER]; informational, S is computed by the engine) ---------------

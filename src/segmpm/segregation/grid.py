@@ -1,7 +1,7 @@
 """The extra Eulerian concentration grid and the compiled species-transport step (seed Fig. 1 i–k).
 
 ``concentration_step`` advances the small-grain concentration φ^s_p of the material points over one
-subcycle of length t_int (physics.md §5.7):
+subcycle of length t_int (docs/segregation.md §2):
 
 (i)   MP → grid with tent (bilinear) weights w_cp to the cell centres (Σ_c w_cp = 1), restricted
       to the active cells (raw fill θ_c ≥ θ_min) and renormalised (``mp_weights``):
@@ -11,7 +11,7 @@ subcycle of length t_int (physics.md §5.7):
       (closures.py) and the Scharfetter–Gummel (or upwind + central) face flux; faces that touch an
       inactive cell (θ < θ_min) and the domain edges carry no flux; substeps of
       Δt_c = safety · min_c θ_c h_c / Σ_faces max(a_f, b_f) (a cell-wise form of the bound
-      θ_min h_c/(2 max|w| + 2D/h_c) of physics.md §5.7, to which it reduces in 1-D);
+      θ_min h_c/(2 max|w| + 2D/h_c) of an explicit monotone flux, to which it reduces in 1-D);
 (k)   grid → MP incremental, bound-preserving mapping Δφ_p = Σ_c w_cp ω_cp Δφ_c with
       ω_cp = (1 − φ_p)/(1 − φ_c) if Δφ_c > 0, φ_p/φ_c otherwise; this conserves Σ_p V⁰_p φ_p
       and keeps 0 ≤ φ_p ≤ 1.

@@ -5,8 +5,8 @@ concentration_step` (same weights, same frozen face coefficients, same substep c
 over particles and cells with NumPy, so the two can be compared to round-off. It is slow-ish and
 allocates; use it for verification only.
 
-The closed forms are those of physics.md §4.3 (Gray & Thornton 2005 shocks, the zero-flux steady
-state logit φ = G(y) − G₀ with G = ∫ w/D dy, i.e. (4.3) for the seed model).
+The closed forms are those of docs/segregation.md §4 (Gray & Thornton 2005 shocks, the zero-flux
+steady state logit φ = G(y) − G₀ with G = ∫ w/D dy, the Boltzmann-like profile for the seed model).
 """
 
 from __future__ import annotations
@@ -295,7 +295,7 @@ def strip_layout(
     return px, py, np.full(px.size, spacing * spacing)
 
 
-# ---- closed-form references (physics.md §4.3) ------------------------------------------------
+# ---- closed-form references (docs/segregation.md §4) ------------------------------------------
 
 
 def shock_positions(q: float, phi0: float, depth: float, t: float) -> tuple[float, float]:
@@ -308,7 +308,7 @@ def shock_positions(q: float, phi0: float, depth: float, t: float) -> tuple[floa
 
 
 def steady_logit_profile(g_of_y: np.ndarray, weights: np.ndarray, phi_mean: float) -> np.ndarray:
-    """Zero-flux steady state logit φ = G(y) − G₀ (physics.md (4.3)), at given points.
+    """Zero-flux steady state logit φ = G(y) − G₀ (docs/segregation.md §4), at given points.
 
     ``g_of_y`` holds G(y) = ∫ w/D dy at the points (for the seed model G = −b^{k,s} S/(ρ η)),
     ``weights`` their volumes; G₀ is fixed by Σ weights φ = φ_mean Σ weights (a 1-D root find).
