@@ -88,6 +88,32 @@ def test_bench_reports_the_peer_ratio_within_rounds(tmp_path):
     assert q["n_points"] == r["n_points"] and len(q["block_wall_s"]) == 3
     ratios = sorted(a / b for a, b in zip(r["block_wall_s"], q["block_wall_s"], strict=True))
     assert r["cost_ratio_vs_taichi"] == pytest.approx(ratios[1], rel=1e-12)
+    qs = r["taichi_mpm88_sorted"]  # the like-for-like peer: segmpm's sorted initial order
+    assert qs["order"] == "sorted" and q["order"] == "random" and len(qs["block_wall_s"]) == 3
+    ratios = sorted(a / b for a, b in zip(r["block_wall_s"], qs["block_wall_s"], strict=True))
+    assert r["cost_ratio_vs_taichi_sorted"] == pytest.approx(ratios[1], rel=1e-12)
+
+
+@pytest.mark.parametrize("n", [2000, 2001, 32000])
+def test_peer_initial_orders(n):
+    """The peer's particles fill the same block in both orders; "sorted" is a lattice in
+    row-major memory order (consecutive particles are neighbours), "random" is not."""
+    import numpy as np
+
+    from segmpm.bench_taichi import initial_positions
+
+    for order in ("random", "sorted"):
+        x = initial_positions(n, 0.4, order)
+        assert x.shape == (n, 2) and np.all((x > 0.2) & (x < 0.6))
+        assert len(np.unique(np.round(x, 12), axis=0)) == n
+    xs = initial_positions(n, 0.4, "sorted")
+    assert np.all(np.diff(xs[:, 1]) >= 0)  # row by row
+    row = xs[:, 1] == xs[0, 1]
+    assert np.all(np.diff(xs[row, 0]) > 0)  # along each row
+    step = np.hypot(*np.diff(xs, axis=0).T)
+    assert np.median(step) == pytest.approx(0.4 / np.ceil(np.sqrt(n)), rel=1e-9)
+    xr_ = initial_positions(n, 0.4, "random")
+    assert np.median(np.hypot(*np.diff(xr_, axis=0).T)) > 10 * np.median(step)
 
 
 def test_bench_times_the_nonlocal_variant_against_the_local(tmp_path):

@@ -51,9 +51,9 @@ class Peer:
     """The Taichi mpm88 peer at one N and thread count, in its own process
     (``python -m segmpm.bench_taichi --serve``), timing one block per :meth:`block` call."""
 
-    def __init__(self, n_points: int, threads: int, steps: int):
+    def __init__(self, n_points: int, threads: int, steps: int, order: str = "random"):
         cmd = [sys.executable, "-m", "segmpm.bench_taichi", "--serve", "--n", str(n_points),
-               "--threads", str(threads), "--steps", str(steps)]  # fmt: skip
+               "--threads", str(threads), "--steps", str(steps), "--order", order]  # fmt: skip
         self.proc = subprocess.Popen(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
         )
@@ -84,14 +84,20 @@ class Peer:
                 self.proc.kill()
 
 
-def _peers(n: int, threads: list[int], steps: int) -> dict[int, Peer]:
-    """One peer per thread count; empty if Taichi is not installed or a peer fails to start."""
+#: the peer's initial particle orders: Taichi mpm88's random order, and segmpm's sorted lattice
+PEER_ORDERS = ("random", "sorted")
+
+
+def _peers(n: int, threads: list[int], steps: int) -> dict[tuple[int, str], Peer]:
+    """One peer per thread count and initial order; empty if Taichi is not installed or a peer
+    fails to start."""
     if importlib.util.find_spec("taichi") is None:
         return {}
-    peers: dict[int, Peer] = {}
+    peers: dict[tuple[int, str], Peer] = {}
     try:
         for t in threads:
-            peers[t] = Peer(n, t, steps)
+            for o in PEER_ORDERS:
+                peers[t, o] = Peer(n, t, steps, o)
     except RuntimeError as err:
         print(f"taichi peer failed: {err}", file=sys.stderr)
         for q in peers.values():
@@ -131,7 +137,7 @@ def bench_size(
         sim.advance(1.0, max(10, steps // 10))  # leave the start-up state
     peers = _peers(n, threads, steps) if peer else {}
     walls: dict[tuple[str, int], list[float]] = {(v, t): [] for v in variants for t in threads}
-    pwalls: dict[int, list[float]] = {t: [] for t in peers}
+    pwalls: dict[tuple[int, str], list[float]] = {k: [] for k in peers}
     try:
         for _ in range(max(1, repeats)):
             for t in threads:
@@ -144,8 +150,9 @@ def bench_size(
                             f"bench: the chute stopped after {sim.steps - s0} of {steps} steps"
                         )
                     walls[v, t].append(sim.wall_time - w0)
-                if t in peers:
-                    pwalls[t].append(peers[t].block())
+                for o in PEER_ORDERS:
+                    if (t, o) in peers:
+                        pwalls[t, o].append(peers[t, o].block())
     finally:
         for q in peers.values():
             q.close()
@@ -159,11 +166,16 @@ def bench_size(
                 r[f"speedup_vs_{threads[0]}_threads"] = _paired(walls[v, threads[0]], w)
             if v != variants[0]:
                 r[f"cost_ratio_vs_{variants[0]}"] = _paired(w, walls[variants[0], t])
-            if t in peers:
-                q = {**peers[t].facts, **summarize(n, steps, pwalls[t])}
-                r["taichi_mpm88"] = q
-                r["cost_ratio_vs_taichi"] = _paired(w, pwalls[t])
-                r["cost_ratio_of_medians"] = r["ns_per_particle_step"] / q["ns_per_particle_step"]
+            for o in PEER_ORDERS:  # "taichi_mpm88" is the random order, "..._sorted" segmpm's
+                if (t, o) not in peers:
+                    continue
+                tag = "" if o == "random" else f"_{o}"
+                q = {**peers[t, o].facts, **summarize(n, steps, pwalls[t, o])}
+                r[f"taichi_mpm88{tag}"] = q
+                r[f"cost_ratio_vs_taichi{tag}"] = _paired(w, pwalls[t, o])
+                r[f"cost_ratio_of_medians{tag}"] = (
+                    r["ns_per_particle_step"] / q["ns_per_particle_step"]
+                )
             out.append(r)
     return out
 
@@ -196,7 +208,8 @@ def run_bench(
           f"numba {numba.__version__}, up to {max_threads} threads")  # fmt: skip
     print(f"{'variant':>9} {'points':>8} {'threads':>7} {'Mpart-steps/s':>14} {'ns/part-step':>13} "
           f"{'best ns':>8} {'speed-up':>8} {'first call s':>13} {'taichi ns':>10} "
-          f"{'ours/taichi':>11} {'vs ' + variants[0]:>10}")  # fmt: skip
+          f"{'ours/taichi':>11} {'sorted ns':>10} {'ours/sorted':>11} "
+          f"{'vs ' + variants[0]:>10}")  # fmt: skip
     for n in sizes:
         for r in bench_size(n, usable, steps, repeats, peer, tuple(variants)):
             results.append(r)
@@ -204,6 +217,10 @@ def run_bench(
             q = r.get("taichi_mpm88")
             extra = (f"{q['ns_per_particle_step']:>10.1f} {r['cost_ratio_vs_taichi']:>11.2f}"
                      if q is not None else f"{'-':>10} {'-':>11}")  # fmt: skip
+            qs = r.get("taichi_mpm88_sorted")
+            extra += (f" {qs['ns_per_particle_step']:>10.1f} "
+                      f"{r['cost_ratio_vs_taichi_sorted']:>11.2f}"
+                      if qs is not None else f" {'-':>10} {'-':>11}")  # fmt: skip
             vr = r.get(f"cost_ratio_vs_{variants[0]}")
             print(f"{r['variant']:>9} {r['n_points']:>8} {r['threads']:>7} "
                   f"{r['particle_steps_per_s'] / 1e6:>14.3f} "

@@ -45,8 +45,31 @@ def summarize(n: int, steps: int, walls: list[float]) -> dict[str, Any]:
     }
 
 
-def setup(n: int, threads: int, steps: int) -> tuple[Callable[[], float], dict[str, Any]]:
-    """Build, compile and warm up the mpm88 case with ``n`` particles on ``threads`` CPU threads.
+ORDERS = ("random", "sorted")
+
+
+def initial_positions(n: int, side: float, order: str):
+    """``n`` particle positions in the block [0.2, 0.2 + side]²: ``"random"`` (uniform random
+    points in random memory order, as Taichi's mpm88 example) or ``"sorted"`` (a square lattice in
+    row-major order, the memory order of segmpm's lattice, so that consecutive particles share
+    cells as in segmpm's bench)."""
+    import numpy as np
+
+    if order == "random":
+        rng = np.random.default_rng(0)
+        return 0.2 + side * rng.random((n, 2))
+    if order != "sorted":
+        raise ValueError(f"order = {order!r}; allowed: {', '.join(ORDERS)}")
+    m = math.ceil(math.sqrt(n))
+    k = np.arange(n)
+    return np.stack([0.2 + side * ((k % m) + 0.5) / m, 0.2 + side * ((k // m) + 0.5) / m], axis=1)
+
+
+def setup(
+    n: int, threads: int, steps: int, order: str = "random"
+) -> tuple[Callable[[], float], dict[str, Any]]:
+    """Build, compile and warm up the mpm88 case with ``n`` particles on ``threads`` CPU threads,
+    the particles initially in ``order`` (``initial_positions``).
 
     Returns a function that times one block of ``steps`` steps (seconds) and the case's facts
     (first-call seconds, grid size, Taichi version)."""
@@ -122,8 +145,7 @@ def setup(n: int, threads: int, steps: int) -> tuple[Callable[[], float], dict[s
             J[p] *= 1.0 + dt * new_c.trace()
             C[p] = new_c
 
-    rng = np.random.default_rng(0)
-    x.from_numpy(0.2 + side * rng.random((n, 2)))
+    x.from_numpy(initial_positions(n, side, order))
     v.from_numpy(np.zeros((n, 2)))
     J.from_numpy(np.ones(n))
     C.from_numpy(np.zeros((n, 2, 2)))
@@ -147,22 +169,25 @@ def setup(n: int, threads: int, steps: int) -> tuple[Callable[[], float], dict[s
         "threads": threads,
         "first_call_s": first,
         "n_grid": n_grid,
+        "order": order,
         "taichi": ti.__version__ if hasattr(ti, "__version__") else "",
     }
     return block, facts
 
 
-def run(n: int, threads: int, steps: int, repeats: int = 1) -> dict[str, Any]:
+def run(
+    n: int, threads: int, steps: int, repeats: int = 1, order: str = "random"
+) -> dict[str, Any]:
     """Time ``repeats`` blocks of ``steps`` mpm88 steps with ``n`` particles on ``threads`` CPU
     threads (median and best block, as ``segmpm.bench``)."""
-    block, facts = setup(n, threads, steps)
+    block, facts = setup(n, threads, steps, order)
     walls = [block() for _ in range(max(1, repeats))]
     return {**facts, **summarize(n, steps, walls)}
 
 
-def serve(n: int, threads: int, steps: int) -> int:
+def serve(n: int, threads: int, steps: int, order: str = "random") -> int:
     """The ``--serve`` loop: one timed block per ``block`` line on stdin, until ``quit``."""
-    block, facts = setup(n, threads, steps)
+    block, facts = setup(n, threads, steps, order)
     print(json.dumps(facts), flush=True)
     while True:
         cmd = sys.stdin.readline().strip()
@@ -181,12 +206,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--order", choices=ORDERS, default="random",
+                    help="initial particle order: random (mpm88) or a sorted lattice (segmpm's)")  # fmt: skip
     ap.add_argument("--serve", action="store_true",
                     help="time one block per 'block' line on stdin (see the module docstring)")  # fmt: skip
     a = ap.parse_args(argv)
     if a.serve:
-        return serve(a.n, a.threads, a.steps)
-    print(json.dumps(run(a.n, a.threads, a.steps, a.repeats)), flush=True)
+        return serve(a.n, a.threads, a.steps, a.order)
+    print(json.dumps(run(a.n, a.threads, a.steps, a.repeats, a.order)), flush=True)
     return 0
 
 
