@@ -113,3 +113,23 @@ def test_flip_transfer_converges_to_the_bagnold_closed_form():
     assert r1 < r2 < 1.0, (r1, r2)
     assert 1.6 < (1 - r1) / (1 - r2) < 2.4, (r1, r2)
     assert abs(2 * r2 - r1 - 1) < 0.01, (r1, r2)
+
+
+def test_run_prints_the_estimated_steps_and_wall_time(tmp_path, capsys):
+    """The CLI prints the remaining steps at the current dt and the wall time at the measured
+    rate after the first steps; a run estimated above an hour gets a warning."""
+    args = ["run", "--out", str(tmp_path / "o")]
+    for s in ["geometry.depth=0.004", "geometry.length=0.002", "time.end=0.02",
+              "output.profile_times=[0.0,0.02]", "output.fields=false", "output.figures=false",
+              "output.progress=false", "time.chunk_steps=50"]:  # fmt: skip
+        args += ["--set", s]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    line = next(x for x in err.splitlines() if "more steps" in x)
+    n_est = int(line.split("about ")[1].split(" more")[0].replace(",", ""))
+    steps = __import__("json").loads((tmp_path / "o" / "run.json").read_text())["steps"]
+    assert 0.5 * steps < n_est + 50 < 1.5 * steps, (line, steps)  # dt varies a little
+    assert "more than an hour" not in err
+    sim = make_sim(["geometry.depth=0.004", "geometry.length=0.002"])
+    sim.advance(1.0, 5)
+    assert "more than an hour" in sim._estimate(1e4, 5, 1.0)

@@ -292,6 +292,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"segmpm {__version__}: {cfg.scenario.kind}, {sim.state.n} material points, "
               f"t_end = {cfg.time.end:g} s, {sim.threads} thread(s) ({sim.threads_reason}) → {out}",
               file=sys.stderr)  # fmt: skip
+        sim.announce = True  # the estimated steps and wall time, after the first steps
         res = sim.run(resume=resume, progress=False if args.no_progress else None, lock=False)
     info = res.info
     pps = info.get("particle_steps_per_second")

@@ -141,6 +141,8 @@ class Simulation:
         self.compile_s = 0.0
         self._interrupt: int | None = None
         self._starting = False  # an interrupt raises KeyboardInterrupt at once (before step 1)
+        #: print the estimated number of steps and wall time after the first call (the CLI sets it)
+        self.announce = False
         self._ckpt_time: float | None = None  # time of the last checkpoint written or loaded
         grid_top = self.state.gp[G_Y0] + (self.state.gp[G_NY] - 1) * self.state.gp[G_H]
         self.edges = bin_edges(grid_top, self.config.output.profile_bin)
@@ -239,6 +241,21 @@ class Simulation:
             d["max_viscosity"] = float(st.sc[S_NUMAX])
             d.update(self._collapsed_step())
         return d
+
+    def _estimate(self, end: float, steps: int, seconds: float) -> str:
+        """The remaining steps at the last step's dt and the wall time at the rate of the first
+        ``steps`` steps (``seconds``), with a warning above an hour."""
+        dt = float(self.state.sc[S_DT])
+        left = max(0.0, end - self.time)
+        n_steps = int(math.ceil(left / dt)) if dt > 0 else 0
+        wall = n_steps * seconds / steps
+        msg = (f"segmpm: about {n_steps:,} more steps (dt = {dt:.3g} s, {self.state.n} points), "
+               f"estimated {_clock(wall)} of wall time at the rate of the first {steps} steps")  # fmt: skip
+        if wall > 3600.0:
+            msg += ("\nsegmpm: warning: this run is estimated to take more than an hour; check "
+                    "the resolved configuration (segmpm validate) - a file without `extends` "
+                    "starts from the schema's defaults, not the reduced-cost preset")  # fmt: skip
+        return msg
 
     def _collapsed_step(self) -> dict[str, Any]:
         """The time step the control asked for when it fell below ``time.dt_min`` (the same
@@ -391,6 +408,7 @@ class Simulation:
                     self._output(t_out, writer, vtk)
                     written.add(t_out)
             per_call = min(cfg.time.chunk_steps, FIRST_CALL_STEPS)
+            announced = False
             while True:
                 pending = [t for t in out_times if t > self.time + 1e-12]
                 target = min([end, next_ckpt, *pending])
@@ -398,8 +416,11 @@ class Simulation:
                     break
                 t0 = _time.perf_counter()
                 status_code, idx, n = self.advance(target, per_call)
-                per_call = _steps_per_call(per_call, n, _time.perf_counter() - t0,
-                                           cfg.time.chunk_steps)  # fmt: skip
+                took = _time.perf_counter() - t0
+                per_call = _steps_per_call(per_call, n, took, cfg.time.chunk_steps)
+                if self.announce and not announced and status_code == ST_OK and n > 0:
+                    announced = True
+                    print(self._estimate(end, n, took), file=sys.stderr)
                 bar.update(self.time, self.steps, self.wall_time)
                 if status_code != ST_OK:
                     raise SimulationError(
