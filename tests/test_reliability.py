@@ -217,7 +217,8 @@ def test_diagnostics_are_those_of_the_last_step_of_a_call():
 
 def test_thread_policy_and_layer_recorded(tmp_path):
     """grid.threads = "auto" runs a small state serially, an integer is used as given; run.json
-    records the count, why, and the threading layer (workqueue unless NUMBA_THREADING_LAYER)."""
+    records the count, why, and the threading layer (omp with a passive wait unless
+    NUMBA_THREADING_LAYER)."""
     import os
 
     from segmpm import threads as T
@@ -230,8 +231,10 @@ def test_thread_policy_and_layer_recorded(tmp_path):
                  "output.profile_times=[0.0]", "output.checkpoint_interval=0")]) == 0  # fmt: skip
     info = json.loads((tmp_path / "run.json").read_text())
     assert info["threads"] == 1 and "serial below" in info["threads_policy"]
-    want = os.environ.get("NUMBA_THREADING_LAYER", "workqueue")
+    want = os.environ.get("NUMBA_THREADING_LAYER", "omp")
     assert info["threading_layer"] == want
+    if want == "omp":
+        assert os.environ.get("OMP_WAIT_POLICY") == "passive"
 
 
 def test_threads_of_one_process_may_run_simulations_at_once():

@@ -15,7 +15,7 @@ __version__ = "0.1.0"
 from . import _cache  # noqa: F401, E402  (before any kernel is defined: keyed Numba cache)
 from .threads import configure_layer as _configure_layer  # noqa: E402
 
-_configure_layer()  # the workqueue threading layer, before any parallel kernel runs
+_configure_layer()  # the omp layer with a passive wait, before any parallel kernel runs
 from .config import Config, ConfigError, load_config  # noqa: E402
 
 __all__ = ["Config", "ConfigError", "Simulation", "load_config", "__version__"]

@@ -1,13 +1,18 @@
 """Thread policy and threading layer of the compiled loop (docs/performance.md, "Threads").
 
-* **Threading layer.** Numba's parallel regions end in a barrier. With the OpenMP layer the waiting
-  threads spin, so a core taken by another process makes every barrier wait for a time slice: a
-  2-thread run beside one busy process was 3–300× slower. segmpm therefore pins Numba's
-  ``workqueue`` layer (its workers sleep on a condition), set before any parallel kernel runs
-  (``configure_layer``, called when the package is imported); ``NUMBA_THREADING_LAYER`` in the
-  environment still wins. The layer in use is recorded in ``run.json``.
-* **Concurrent launches.** The workqueue layer does not allow two threads of one process to launch
-  parallel kernels at once (Numba aborts the process). Every call of the compiled loop from
+* **Threading layer.** Numba's parallel regions end in a barrier. With the OpenMP layer's default
+  (active) wait policy the waiting threads spin, so a core taken by another process makes every
+  barrier wait for a time slice: a 2-thread run beside one busy process was 3–300× slower. The
+  ``workqueue`` layer does not spin, but its launch (a condition-variable hand-off to a worker,
+  even on one thread) cost ≈ 0.1 ms per parallel region: the default seed case (596 points, a few
+  regions per step) ran 12× slower than with OpenMP (8.6 s against 0.7 s for 0.2 s of flow,
+  docs/performance.md "Threads"). segmpm therefore pins the ``omp`` layer with
+  ``OMP_WAIT_POLICY=passive`` (waiting threads sleep; one thread runs a region inline), both set
+  before any parallel kernel runs (``configure_layer``, called when the package is imported);
+  ``NUMBA_THREADING_LAYER`` and ``OMP_WAIT_POLICY`` in the environment still win. The layer in
+  use is recorded in ``run.json``.
+* **Concurrent launches.** Numba's workqueue layer aborts the process when two threads of one
+  process launch parallel kernels at once; whichever layer is in use, every call of the compiled loop from
   :class:`segmpm.simulation.Simulation` holds ``KERNEL_LOCK``: several threads of one process (a
   dask worker with ``threads_per_worker > 1``) are safe, and take turns.
 * **Thread count** (``grid.threads = "auto"``, the default): one thread below
@@ -32,7 +37,7 @@ KERNEL_LOCK = threading.RLock()
 SERIAL_BELOW = 20_000
 
 #: the threading layer segmpm asks Numba for
-LAYER = "workqueue"
+LAYER = "omp"
 
 
 def configure_layer() -> str:
@@ -42,6 +47,8 @@ def configure_layer() -> str:
     env = os.environ.get("NUMBA_THREADING_LAYER")
     if env:
         return env
+    # read by libgomp when it is loaded, i.e. at Numba's first parallel launch
+    os.environ.setdefault("OMP_WAIT_POLICY", "passive")
     numba.config.THREADING_LAYER = LAYER
     return LAYER
 
