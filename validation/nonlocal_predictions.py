@@ -19,7 +19,8 @@ flux with the fluidity's kinetic stress) and ``nonlocal_B`` (nonlocal + the seed
 
 Each (case, model) runs as an ordinary ``segmpm run`` into validation/results/nonlocal/CASE/MODEL
 (completed runs are reused), then ``segmpm compare`` against the case's DEM profiles; the table of
-errors goes to validation/results/nonlocal/summary.json and summary.md.
+errors of that call goes to validation/results/nonlocal/summary.{json,md};
+``validation/nonlocal_table.py`` builds the table of every completed run (table.md).
 
     python validation/nonlocal_predictions.py [--cases seed muw015] [--models nonlocal_lh ...]
 """
