@@ -108,3 +108,16 @@ def test_a_file_extends_a_preset_or_another_file(tmp_path):
     (tmp_path / "e.toml").write_text('extends = "e.toml"\n')
     with pytest.raises(ConfigError, match="levels of extends"):
         load_config(tmp_path / "e.toml")
+
+
+def test_a_file_without_extends_is_named_as_starting_from_the_schema(tmp_path, capsys):
+    """`validate` of a file that does not say what it extends notes that the unset keys are the
+    schema's, not the preset's; a file that extends the preset gets no such note."""
+    bare = tmp_path / "bare.toml"
+    bare.write_text("[time]\nend = 0.05\n")
+    assert main(["validate", str(bare)]) == 0
+    assert "has no `extends`" in capsys.readouterr().err
+    on_preset = tmp_path / "mine.toml"
+    on_preset.write_text('extends = "chute_seed"\n[time]\nend = 0.05\n')
+    assert main(["validate", str(on_preset)]) == 0
+    assert "has no `extends`" not in capsys.readouterr().err

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from . import __version__
-from .config import Config, ConfigError, load_config, validate_data
+from .config import Config, ConfigError, load_config, read_toml, validate_data
 from .io.atomic import OutputWriteError
 from .io.outdir import RESUME_MAY_DIFFER, config_differences
 
@@ -120,9 +120,26 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def _note_without_extends(path: str | None) -> None:
+    """A file without ``extends`` starts from the schema's defaults, which are not the default
+    preset's (a 12 mm strip at full stiffness): say so, once, before the run or the listing."""
+    if path is None:
+        return
+    try:
+        data = read_toml(path)
+    except ConfigError:
+        return  # load_config reports it
+    if "extends" not in data:
+        print(f"segmpm: note: {path} has no `extends`: the keys it does not set take the schema's "
+              "defaults (stiffness scale 1, CFL 0.4, a 12 mm strip), not those of the default "
+              "preset; start it with extends = \"chute_seed\" to build on the preset",
+              file=sys.stderr)  # fmt: skip
+
+
 def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "validate":
         cfg = load_config(args.config, args.overrides)
+        _note_without_extends(args.config)
         print(cfg.to_toml())
         print(f"# configuration is valid ({args.config})", file=sys.stderr)
         return 0
@@ -251,6 +268,8 @@ def _run(args: argparse.Namespace) -> int:
     else:
         cfg = load_config(args.config, args.overrides)
         out = Path(args.out) if args.out else Path(cfg.output.dir)
+    if args.config is not None:
+        _note_without_extends(args.config)
     prepare_out_dir(out)
     with OutLock(out):
         resume = False
