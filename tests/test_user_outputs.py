@@ -5,7 +5,6 @@ on a closed-form flow.
 
 from __future__ import annotations
 
-import math
 import xml.etree.ElementTree as ET
 
 import matplotlib.figure
@@ -16,6 +15,7 @@ import pytest
 import xarray as xr
 from conftest import make_sim
 
+from segmpm.analysis.closed_form import bagnold_velocity
 from segmpm.cli import main
 from segmpm.io.figures import PANELS
 
@@ -97,10 +97,7 @@ def _bagnold_surface_ratio(h: float, transfer: str) -> float:
     st = sim.state
     top = st.x[1].max()
     u = st.v[0][np.abs(st.x[1] - top) < 1e-9].mean()
-    a, qc, f, g, dbar = 0.46, 0.38 * 2 * 0.95 / (1 + 0.95**2), 0.6, 9.81, 2.5e-3
-    inert = (math.tan(math.radians(theta)) - qc) / a
-    k = 2 * inert / (3 * dbar) * math.sqrt(f * g * math.cos(math.radians(theta)))
-    return u / (k * (H**1.5 - max(H - top, 0.0) ** 1.5))
+    return u / float(bagnold_velocity(sim.config, np.array([top]))[0])
 
 
 def test_flip_transfer_converges_to_the_bagnold_closed_form():

@@ -73,19 +73,23 @@ def steady(F, t_lo=4.0, t_hi=8.0):
     return P, B.surface(P)
 
 
+def steady_inclines():
+    """(slope, steady fields, surface height) of every incline run present, in slope order."""
+    for th in (22, 24, 26, 28):
+        name = f"incline_{th}"
+        if (RUNS / name / "case.json").exists():
+            _, F = load(name)
+            yield (th, *steady(F))
+
+
 # ------------------------------------------------------------------------------------ μ(I)
 def fit_mu_of_I(out):
     rows = []
-    for th in (22, 24, 26, 28):
-        name = f"incline_{th}"
-        if not (RUNS / name / "case.json").exists():
-            continue
-        _, F = load(name)
-        P, H = steady(F)
+    for th, P, H in steady_inclines():
         sel = (P["zeta"] > 0.004) & (P["zeta"] < H - 0.003) & np.isfinite(P["mu"]) & (P["I_zz"] > 0)
         for i in np.where(sel)[0]:
             rows.append((th, P["I_zz"][i], P["mu"][i], P["mu_inv"][i], P["n"][i]))
-        out.setdefault("inclines", {})[name] = dict(
+        out.setdefault("inclines", {})[f"incline_{th}"] = dict(
             surface_m=H, tan_theta=math.tan(math.radians(th)),
             mu_bulk_mean=float(np.nanmean(P["mu"][sel])),
             mu_invariant_bulk_mean=float(np.nanmean(P["mu_inv"][sel])),
@@ -250,12 +254,7 @@ def fit_ngf_profiles(out, n_nodes=800):
 
     p_min = 0.6 * B.RHO_S * 9.81 * D_BAR  # one grain layer, as material.fluidity_floor_layers = 1
     profs = []
-    for th in (22, 24, 26, 28):
-        name = f"incline_{th}"
-        if not (RUNS / name / "case.json").exists():
-            continue
-        _, F = load(name)
-        P, H = steady(F)
+    for th, P, H in steady_inclines():
         sel = (P["zeta"] > 0.0) & (P["zeta"] < H) & np.isfinite(P["u"])
         y = P["zeta"][sel]
         profs.append(dict(theta=th, H=H, y=y, u=P["u"][sel], us=float(np.nanmax(P["u"][sel])),
