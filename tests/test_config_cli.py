@@ -121,3 +121,36 @@ def test_a_file_without_extends_is_named_as_starting_from_the_schema(tmp_path, c
     on_preset.write_text('extends = "chute_seed"\n[time]\nend = 0.05\n')
     assert main(["validate", str(on_preset)]) == 0
     assert "has no `extends`" not in capsys.readouterr().err
+
+
+def test_the_default_is_the_nonlocal_preset_and_the_seed_model_a_preset_away(tmp_path, capsys):
+    """The built-in default is ``chute_nonlocal`` (resolved onto ``chute_seed``); the seed's local
+    model is the preset ``chute_seed``, reachable as the CONFIG argument; the seed's Eq. 6 is one
+    ``--set`` from the default; a file of the same name wins over a preset name."""
+    import os
+
+    from segmpm.config import DEFAULT_PRESET, load_config
+
+    assert DEFAULT_PRESET == "chute_nonlocal"
+    d = load_config()
+    assert d == load_config(preset="chute_nonlocal")
+    assert d.material.rheology == "nonlocal" and d.segregation.model == "liu_henann"
+    assert d.geometry.depth == 0.0373 and d.geometry.slope_deg == 26.0  # the seed's geometry
+    seed = load_config("chute_seed")
+    assert seed == load_config(preset="chute_seed")
+    assert seed.material.rheology == "local" and seed.segregation.model == "hill_tan_reduced"
+    eq6 = load_config(overrides=['segregation.model="hill_tan_reduced"'])
+    assert eq6.segregation.driver == seed.segregation.driver == "B"
+    assert eq6.segregation.c_D == seed.segregation.c_D and eq6.material.rheology == "nonlocal"
+    with pytest.raises(ConfigError, match="not both"):
+        load_config("chute_seed", preset="chute_seed")
+    assert main(["validate", "chute_seed"]) == 0
+    assert 'rheology = "local"' in capsys.readouterr().out
+    assert main(["validate", "no_such_preset"]) == 2
+    cwd = os.getcwd()
+    try:  # a file named like a preset (with .toml) is a file
+        os.chdir(tmp_path)
+        (tmp_path / "chute_seed.toml").write_text('extends = "chute_seed"\n[time]\nend = 0.05\n')
+        assert load_config("chute_seed.toml").time.end == 0.05
+    finally:
+        os.chdir(cwd)

@@ -86,7 +86,7 @@ def _shear_history(rate: float, strain: float, I1: float, prm: np.ndarray):
 
 
 def test_simple_shear_elastic_rise_cap_and_mu_of_I():
-    cfg = load_config(overrides=["material.stiffness_scale=1.0"])
+    cfg = load_config(preset="chute_seed", overrides=["material.stiffness_scale=1.0"])
     prm = pack_material(cfg)
     I1 = 2e-5
     G = prm[M_C] * math.sqrt(I1) / 2
@@ -111,9 +111,14 @@ def test_simple_shear_elastic_rise_cap_and_mu_of_I():
 
 def test_sigma_d_factor_and_mean_diameter():
     """σ^d scales with sigma_d_factor and with d̄ = φ d_s + (1 − φ) d_l."""
-    base = pack_material(load_config(overrides=["material.stiffness_scale=1e-3"]))
+    base = pack_material(
+        load_config(preset="chute_seed", overrides=["material.stiffness_scale=1e-3"])
+    )
     half = pack_material(
-        load_config(overrides=["material.stiffness_scale=1e-3", "material.sigma_d_factor=0.5"])
+        load_config(
+            preset="chute_seed",
+            overrides=["material.stiffness_scale=1e-3", "material.sigma_d_factor=0.5"],
+        )
     )
     I1 = 1e-3
     args = (0.0, 50.0, 0.0, 0.0, 0.0, -I1 / 3, -I1 / 3, 0.0, -I1 / 3, math.exp(-I1))
@@ -125,7 +130,9 @@ def test_sigma_d_factor_and_mean_diameter():
 
 
 def test_gas_state_is_stress_free():
-    prm = pack_material(load_config(overrides=["material.stiffness_scale=1e-3"]))
+    prm = pack_material(
+        load_config(preset="chute_seed", overrides=["material.stiffness_scale=1e-3"])
+    )
     r = fei_update(prm, 3.0, 5.0, -2.0, 1.0, 1e-4, 1e-4, -2e-4, 3e-5, 0.0, 1.01, 0.5)
     assert all(v == 0.0 for v in r[4:8]) and r[8] == 0.0 and r[11] == 0.0
     assert r[0] == r[1] == r[3] == pytest.approx(math.log(1.01) / 3) and r[2] == 0.0
@@ -134,7 +141,11 @@ def test_gas_state_is_stress_free():
 def test_compiled_update_matches_numpy_reference(rng):
     for overrides in ([], ["material.b=0.7", "segregation.driver='B'"],
                       ["material.bulk_viscosity=0.1", "segregation.driver='C'"]):  # fmt: skip
-        prm = pack_material(load_config(overrides=["material.stiffness_scale=1e-2", *overrides]))
+        prm = pack_material(
+            load_config(
+                preset="chute_seed", overrides=["material.stiffness_scale=1e-2", *overrides]
+            )
+        )
         n = 300
         L = rng.normal(scale=20.0, size=(n, 2, 2))
         I1 = rng.uniform(-1e-4, 1e-3, n)
@@ -153,7 +164,9 @@ def test_compiled_update_matches_numpy_reference(rng):
 
 
 def test_stiffness_scale_scales_A_and_C_together():
-    p1 = pack_material(load_config(overrides=["material.stiffness_scale=1.0"]))
-    p2 = pack_material(load_config(overrides=["material.stiffness_scale=1e-3"]))
+    p1 = pack_material(load_config(preset="chute_seed", overrides=["material.stiffness_scale=1.0"]))
+    p2 = pack_material(
+        load_config(preset="chute_seed", overrides=["material.stiffness_scale=1e-3"])
+    )
     assert p2[M_A] / p1[M_A] == pytest.approx(1e-3) and p2[M_C] / p1[M_C] == pytest.approx(1e-3)
     assert p1[M_C] == pytest.approx(5 * QPHI**2 * A)

@@ -26,7 +26,7 @@ from segmpm.mpm.fluidity import fluidity_step
 from segmpm.scenarios import build
 
 assert segmpm.__file__.startswith(sys.argv[1]), segmpm.__file__
-cfg = load_config(overrides=["material.rheology='nonlocal'", "material.q_phi=0.75",
+cfg = load_config(preset="chute_seed", overrides=["material.rheology='nonlocal'", "material.q_phi=0.75",
                              "segregation.model='none'", "geometry.length=0.001",
                              "grid.cell_size=5e-4", "geometry.depth=0.01"])
 st = build(cfg)

@@ -47,7 +47,9 @@ DT = 1e-5
 
 
 def _inputs(overrides, rng):
-    prm = pack_material(load_config(overrides=["material.stiffness_scale=1e-2", *overrides]))
+    prm = pack_material(
+        load_config(preset="chute_seed", overrides=["material.stiffness_scale=1e-2", *overrides])
+    )
     L = rng.normal(scale=20.0, size=(N, 2, 2))
     I1 = rng.uniform(-1e-4, 1e-3, N)
     eps = rng.normal(scale=3e-4, size=(N, 4))

@@ -149,7 +149,7 @@ def test_compiled_time_loop_is_cached():
         "import warnings; warnings.simplefilter('always')\n"
         "from segmpm.config import load_config\n"
         "from segmpm.simulation import Simulation\n"
-        "cfg = load_config(overrides=['output.progress=false', 'geometry.depth=0.002',\n"
+        "cfg = load_config(preset='chute_seed', overrides=['output.progress=false', 'geometry.depth=0.002',\n"
         "                             'geometry.length=0.002'])\n"
         "Simulation(cfg).advance(1.0, 3)\n"
     )

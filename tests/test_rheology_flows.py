@@ -197,7 +197,7 @@ def test_closed_form_module_matches_the_test_oracle():
     from segmpm.config import load_config
 
     for theta, H, mu_w in ((26.0, 0.006, 0.3), (31.0, 0.02, 0.15)):
-        cfg = load_config(overrides=[f"geometry.slope_deg={theta}", f"geometry.depth={H}",
+        cfg = load_config(preset="chute_seed", overrides=[f"geometry.slope_deg={theta}", f"geometry.depth={H}",
                                      f"boundary.sidewall_friction={mu_w}"])  # fmt: skip
         y = np.linspace(0, H, 50)
         np.testing.assert_allclose(bagnold_velocity(cfg, y), bagnold(y, H, theta), rtol=1e-12)

@@ -187,7 +187,9 @@ def test_tent_weights_partition_of_unity() -> None:
 
 def test_pack_params_from_config() -> None:
     config = pytest.importorskip("segmpm.config")
-    cfg = config.load_config(overrides=["segregation.model=fan2014", "segregation.dt=0.002"])
+    cfg = config.load_config(
+        preset="chute_seed", overrides=["segregation.model=fan2014", "segregation.dt=0.002"]
+    )
     g = (G * np.sin(SLOPE), -G * np.cos(SLOPE))
     prm = pack_params(cfg, g)
     assert prm.shape == (N_PARAMS,) and prm.dtype == np.float64

@@ -186,7 +186,7 @@ def test_sweep_base_may_extend_a_preset(tmp_path, inline):
     path = tmp_path / "sweep.toml"
     path.write_text(text + '[parameters]\n"geometry.slope_deg" = [24.0, 26.0]\n')
     members, _ = build_members(path, tmp_path / "out")
-    preset = load_config()  # the built-in default: the seed preset
+    preset = load_config(preset="chute_seed")
     for m, slope in zip(members, (24.0, 26.0), strict=True):
         assert m.config.geometry.slope_deg == slope and m.config.time.end == 0.01
         assert m.config.material.stiffness_scale == preset.material.stiffness_scale == 1e-3

@@ -22,8 +22,10 @@ EXIT_WRITE = 4
 
 
 def _add_config_args(p: argparse.ArgumentParser, required: bool) -> None:
-    p.add_argument("config", nargs=None if required else "?", help="configuration TOML file"
-                   + ("" if required else " (default: the built-in seed chute case)"))  # fmt: skip
+    p.add_argument("config", nargs=None if required else "?",
+                   help="configuration TOML file or a built-in preset name (chute_nonlocal, "
+                   "chute_seed)" + ("" if required else "; default: the seed chute case with the "
+                   "grain-calibrated nonlocal model, preset chute_nonlocal"))  # fmt: skip
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a configuration value, e.g. --set geometry.slope_deg=24 (TOML value)")  # fmt: skip
 
@@ -33,14 +35,17 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="segmpm",
         description="Material point method for dense granular flow with size segregation "
-        "(Fei, Sun, Hill & Zhou 2017). Run with no configuration for the seed's chute case.",
+        "(Fei, Sun, Hill & Zhou 2017). Run with no configuration for the seed's chute case (the "
+        "grain-calibrated nonlocal model; `segmpm run chute_seed` for the seed's local model).",
         epilog="Exit codes: 0 success, 2 invalid input, 3 numerical failure, 4 an output could "
         "not be written mid-run, 130 interrupted.",
     )
     ap.add_argument("--version", action="version", version=f"segmpm {__version__}")
     sub = ap.add_subparsers(dest="command", metavar="COMMAND")
 
-    p = sub.add_parser("run", help="run a simulation (default: the seed's chute case)")
+    p = sub.add_parser(
+        "run", help="run a simulation (default: the seed's chute case, nonlocal model)"
+    )
     _add_config_args(p, required=False)
     p.add_argument("--out", help="output directory (default: output.dir of the configuration)")
     g = p.add_mutually_exclusive_group()

@@ -3,8 +3,9 @@
 Every key lives in one of the sections of the public interface (README, "Configuration"):
 ``scenario``, ``geometry``, ``grid``, ``material``, ``mixture``, ``segregation``, ``boundary``,
 ``time``, ``output``.
-All quantities are SI. Unknown keys are rejected. The built-in default is the seed's chute case
-(Fei, Sun, Hill & Zhou 2017, §4) with the reduced-cost preset documented in the README.
+All quantities are SI. Unknown keys are rejected. The built-in default (``DEFAULT_PRESET``) is the
+seed's chute case (Fei, Sun, Hill & Zhou 2017, §4) with the grain-calibrated nonlocal model; the
+seed's own reduced local model is the preset ``chute_seed`` (README).
 """
 
 from __future__ import annotations
@@ -41,6 +42,10 @@ class ScenarioConfig(_Section):
     kind: Literal["chute", "collapse", "bar", "box"] = "chute"
     #: bar: initial velocity amplitude v0 of the first mode, m/s; box: uniform velocity (x), m/s.
     velocity: Annotated[float, Field(ge=-1e3, le=1e3, allow_inf_nan=False)] = 1e-3
+    #: ``"mpm"``: the 2-D material point method; ``"column"``: the 1-D depth-resolved model of an
+    #: x-uniform layer (chute only) with the same constitutive, fluidity and segregation kernels
+    #: (docs/column.md); it writes the same profiles and run files, no particle snapshots.
+    solver: Literal["mpm", "column"] = "mpm"
 
 
 class GeometryConfig(_Section):
@@ -124,7 +129,8 @@ class MaterialConfig(_Section):
     sigma_d_factor: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 1.0
     #: floor on the shear rate in μ_d for b < 1, 1/s.
     shear_rate_floor: Annotated[float, Field(gt=0, le=1e3, allow_inf_nan=False)] = 1e-6
-    #: bulk viscosity ζ_b as a fraction of ρ c h (docs/model.md §1, step 9), 0 disables.
+    #: bulk viscosity ζ_b as a fraction of ρ c h (docs/model.md §1, step 9), 0 disables; the
+    #: column model uses at least ``column.COLUMN_BULK_VISCOSITY`` (docs/column.md).
     bulk_viscosity: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.0
     #: initial state: "geostatic" (I1 from the oedometric law under the initial load: a lateral
     #: stress ratio K₀ < 1), "isotropic" (the same load as an isotropic pressure, no deviatoric
@@ -239,6 +245,9 @@ class TimeConfig(_Section):
     end: Annotated[float, Field(gt=0, le=1e5, allow_inf_nan=False)] = 20.0
     #: Courant number of the time step Δt = CFL h / max(c + |v|).
     cfl: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.4
+    #: the column model's Courant number c Δt/Δy on its element Δy (``scenario.solver =
+    #: "column"``; docs/column.md; stable below 1 with the column's bulk-viscosity floor).
+    column_courant: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.9
     #: C_ν of the viscous limit Δt ≤ C_ν h²/(2 max ν); explicit diffusion in 2-D is stable for
     #: C_ν < 0.5, so it is kept apart from the Courant number.
     viscous_number: Annotated[float, Field(gt=0, lt=0.5, allow_inf_nan=False)] = 0.4
@@ -381,6 +390,11 @@ class Config(_Section):
                 f"segregation.model = {self.segregation.model!r} with segregation.driver = "
                 f"{self.segregation.driver!r} uses the fluidity g: it needs material.rheology = "
                 "'nonlocal'"
+            )
+        if self.scenario.solver == "column" and kind != "chute":
+            raise ValueError(
+                f"scenario.solver = 'column' models an x-uniform layer: it needs scenario.kind = "
+                f"'chute'; got scenario.kind = {kind!r} (allowed with the column: 'chute')"
             )
         if self.time.dt_min >= self.time.dt_max:
             raise ValueError(
@@ -592,30 +606,51 @@ def resolve_extends(data: dict[str, Any], base_dir: Path | None, depth: int = 0)
     return out
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
-    """Load a configuration (the built-in default when ``path`` is None) and apply overrides.
+def is_preset_name(path: str | Path) -> bool:
+    """True when ``path`` names a built-in preset (``chute_seed``) rather than a file: no
+    ``.toml`` suffix, no such file, and a preset of that name exists."""
+    s = str(path)
+    return not s.endswith(".toml") and not Path(s).exists() and s in preset_names()
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None, *,
+                preset: str | None = None) -> Config:  # fmt: skip
+    """Load a configuration and apply overrides: a TOML file (``path``), a built-in preset
+    (``preset``, or ``path`` given as a preset name such as ``"chute_seed"``), or, with
+    neither, the built-in default (``DEFAULT_PRESET``).
 
     A file may start from a built-in preset or another file with a top-level
     ``extends = "chute_seed"`` (or a path); its sections then override the base's keys.
 
     >>> cfg = load_config(overrides=["time.end=0.1"])
-    >>> cfg.scenario.kind
-    'chute'
+    >>> cfg.scenario.kind, cfg.material.rheology
+    ('chute', 'nonlocal')
+    >>> load_config(preset="chute_seed").material.rheology
+    'local'
     """
+    if path is not None and preset is not None:
+        raise ConfigError("give a configuration file or a preset, not both")
+    if path is not None and is_preset_name(path):
+        path, preset = None, str(path)
     if path is not None:
         data = resolve_extends(read_toml(path), Path(path).parent)
+    elif preset is not None:
+        data = resolve_extends(preset_data(preset), None)
     else:
         data = default_data()
     data = apply_overrides(data, overrides)
     return validate_data(data)
 
 
-def default_data() -> dict[str, Any]:
-    """The built-in default configuration (the seed chute case, reduced-cost preset)."""
-    from importlib import resources
+#: The preset ``segmpm run`` uses without a configuration: the grain-calibrated nonlocal model of
+#: the seed chute (docs/validation.md §3 "The default": it beat the seed's local model on every
+#: DEM case). The seed's reduced local model is the preset ``chute_seed``.
+DEFAULT_PRESET = "chute_nonlocal"
 
-    text = resources.files("segmpm").joinpath("presets/chute_seed.toml").read_text()
-    return tomllib.loads(text)
+
+def default_data() -> dict[str, Any]:
+    """The built-in default configuration, ``DEFAULT_PRESET`` with its ``extends`` resolved."""
+    return resolve_extends(preset_data(DEFAULT_PRESET), None)
 
 
 # --------------------------------------------------------------------------------------------

@@ -76,15 +76,16 @@ def _steps_per_call(current: int, steps: int, seconds: float, limit: int) -> int
     return max(1, min(limit, want, 8 * max(current, steps)))
 
 
-def kernel_cache_warm() -> bool:
-    """True when Numba's on-disk cache holds the compiled time loop (``step.advance``), i.e. the
-    first call of this process loads it instead of compiling it."""
+def kernel_cache_warm(loop: str = "step.advance") -> bool:
+    """True when Numba's on-disk cache holds the compiled time loop ``loop`` (the MPM's
+    ``step.advance`` or the column's ``column.advance_column``), i.e. the first call of this
+    process loads it instead of compiling it."""
     from .mpm import step as _step
 
     root = numba.config.CACHE_DIR
     folder = Path(root) if root else Path(_step.__file__).parent / "__pycache__"
     try:
-        return any(folder.rglob("step.advance-*.nbi"))
+        return any(folder.rglob(f"{loop}-*.nbi"))
     except OSError:
         return False
 
@@ -191,6 +192,18 @@ class Simulation:
         self._prime()
         st, w = self.state, self.state.work
         t0 = _time.perf_counter()
+        if st.nodes is not None:
+            from .column import advance_column
+
+            status, idx, n = advance_column(
+                st.x, st.v, st.mass, st.vol0, st.J, st.eps, st.sig, st.phi, st.gf, st.diag,
+                st.s_int, st.g_int, st.nodes, w["seg_vol"], st.gp, st.mp, st.sc, w["fw"],
+                st.seg_prm, st.cg, st.seg_work, float(t_stop), int(max_steps),
+            )  # fmt: skip
+            self.wall_time += _time.perf_counter() - t0
+            if status != ST_OK:
+                self._failed = (int(status), int(idx))
+            return int(status), int(idx), int(n)
         status, idx, n = advance(
             st.x, st.v, st.C, st.mass, st.vol0, st.J, st.eps, st.sig, st.phi, st.gf, st.diag,
             st.s_int, st.g_int, st.gp, st.mp, st.sc, w["grid"], w["gv"],
@@ -489,7 +502,13 @@ class Simulation:
         changes nothing. Returns the seconds taken (``compile_s`` of run.json), which are not
         part of the wall time of the loop; the first run of a fresh install says that it
         compiles (2–4 minutes)."""
-        cold = not advance.signatures and not kernel_cache_warm()
+        from .column import advance_column
+
+        column = self.state.nodes is not None
+        loop = advance_column if column else advance
+        cold = not loop.signatures and not kernel_cache_warm(
+            "column.advance_column" if column else "step.advance"
+        )
         if cold:
             print("segmpm: compiling kernels (first run only, about 2-4 minutes)",
                   file=sys.stderr, flush=True)  # fmt: skip
@@ -550,7 +569,7 @@ class Simulation:
 
     def _output(self, t: float, writer, vtk) -> None:
         writer.add(t, self.profiles(), self.segregation_diagnostics())
-        if self.config.output.fields:
+        if self.config.output.fields and self.state.nodes is None:  # the column: profiles only
             vtk.add(t, self.state, self.config.material.rheology == "nonlocal")
 
     def _write_runinfo(self, status: str, failure: dict[str, Any] | None) -> dict[str, Any]:
@@ -606,7 +625,11 @@ class Simulation:
         """Restore the state saved by :meth:`save_checkpoint`."""
         arrays, meta = load_checkpoint(path)
         st = self.state
-        for k in (*STATE_ARRAYS, "sc"):
+        keys = (*STATE_ARRAYS, "sc") + (("nodes",) if st.nodes is not None else ())
+        for k in keys:
+            if k not in arrays:
+                raise ValueError(f"checkpoint {path}: no array {k} (a checkpoint of another "
+                                 "solver?)")  # fmt: skip
             if arrays[k].shape != getattr(st, k).shape:
                 raise ValueError(f"checkpoint {path}: array {k} has shape {arrays[k].shape}, "
                                  f"expected {getattr(st, k).shape} for this configuration")  # fmt: skip

@@ -19,6 +19,9 @@ diag       (6, N)    p_e (Pa), γ̇ (1/s), I, S (Pa), c + |v| (m/s), ν (m²/s)
 s_int      (N,)      ∫ S dt over the current segregation subcycle, Pa s
 g_int      (N,)      ∫ γ̇ dt over the current segregation subcycle
 sc         (S_NSLOTS) scalar state: time, steps, Δt, … (mpm.params S_*)
+nodes      (4, N+1)  column model only (``scenario.solver = "column"``): the nodes of the
+                     1-D elements, rows ``column.COL_*`` (y, u, v, lumped mass); the points
+                     are then the elements
 ========== ========= ===============================================================
 """
 
@@ -66,6 +69,8 @@ class State:
     seg_prm: np.ndarray | None = None
     cg: Any = None
     seg_work: tuple = ()
+    #: the column model's nodes (None for the MPM; saved in checkpoints when present)
+    nodes: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -131,8 +136,11 @@ class State:
             self.seg_work = allocate_work(self.cg)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The physical state arrays (no work arrays)."""
-        return {k: getattr(self, k) for k in (*STATE_ARRAYS, "sc")}
+        """The physical state arrays (no work arrays; the column's nodes when present)."""
+        out = {k: getattr(self, k) for k in (*STATE_ARRAYS, "sc")}
+        if self.nodes is not None:
+            out["nodes"] = self.nodes
+        return out
 
     def copy(self) -> State:
         """Deep copy (work arrays reallocated)."""

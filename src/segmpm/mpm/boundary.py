@@ -76,4 +76,17 @@ def sidewall_friction(vx, vy, dvmax):
     return vx * s, vy * s
 
 
-__all__ = ["BC_FRICTION", "BC_SLIP", "apply_bc", "sidewall_friction"]
+@njit(cache=True, error_model="numpy", inline="always")
+def sidewall_drag(vx, vy, sw, sw0, uw, dt, vp, im):
+    """The sidewall Coulomb body force over one step (docs/model.md §2), shared by the MPM grid
+    update and the column model: Δv_max = Δt (2 K_w μ_w(u)/W) (Σ V p)/m with
+    μ_w(u) = μ_w0 + (μ_w∞ − μ_w0) u/(u + u_w) (``sw``, ``sw0`` = 2 K_w μ/W; u_w > 0), or the
+    constant μ_w (u_w = 0); ``vp`` = Σ V p of the node, ``im`` = 1/m. Never reverses v."""
+    f = sw
+    if uw > 0.0:
+        s = math.sqrt(vx * vx + vy * vy)
+        f = sw0 + (sw - sw0) * s / (s + uw)
+    return sidewall_friction(vx, vy, dt * f * vp * im)
+
+
+__all__ = ["BC_FRICTION", "BC_SLIP", "apply_bc", "sidewall_drag", "sidewall_friction"]

@@ -88,10 +88,12 @@ def allocate(nx: int, ny: int) -> np.ndarray:
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _wrap(i, n):
-    if i < 0:
-        return i + n
-    if i >= n:
-        return i - n
+    """Periodic index of a stencil node (i ∈ [−1, n + 1]); a grid of one or two nodes in x
+    (the column model's) wraps more than once."""
+    while i < 0:
+        i += n
+    while i >= n:
+        i -= n
     return i
 
 

@@ -18,7 +18,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .boundary import apply_bc, sidewall_friction
+from .boundary import apply_bc, sidewall_drag
 from .params import (
     BC_NOSLIP,
     G_BASE_KIND,
@@ -409,15 +409,10 @@ def grid_update(gp, grid, gv, dt, ramp, sidewall_on):
             vy = voy + dt * (grid[i, j, N_FY] * im + gy)
             if sidewall_on and (sw > 0.0 or sw0 > 0.0):
                 # Coulomb body force 2 μ_w K_w p / W per unit volume: its Galerkin integral
-                # Σ w V p over the nodal mass is the pressure over density at the node; μ_w may
-                # grow with the speed, μ_w(u) = μ_w0 + (μ_w − μ_w0) u/(u + u_w)
+                # Σ w V p over the nodal mass is the pressure over density at the node
                 vp = grid[i, j, N_VP]
                 if vp > 0.0:
-                    f = sw
-                    if uw > 0.0:
-                        s = math.sqrt(vx * vx + vy * vy)
-                        f = sw0 + (sw - sw0) * s / (s + uw)
-                    vx, vy = sidewall_friction(vx, vy, dt * f * vp * im)
+                    vx, vy = sidewall_drag(vx, vy, sw, sw0, uw, dt, vp, im)
             yn = y0 + j * h
             vx, vy = apply_bc(gp, xn, yn, vx, vy)
             # the boundary also constrains the old velocity, so that the FLIP increment on a

@@ -15,7 +15,12 @@ BUILDERS = {
 
 
 def build(cfg: Config) -> State:
-    """Initial state of the scenario ``cfg.scenario.kind``, with its concentration grid."""
+    """Initial state of the scenario ``cfg.scenario.kind``, with its concentration grid (the
+    column model's elements and nodes with ``scenario.solver = "column"``)."""
+    if cfg.scenario.solver == "column":
+        from ..column import build_column
+
+        return build_column(cfg)
     st = BUILDERS[cfg.scenario.kind](cfg)
     attach_segregation(cfg, st)
     return st

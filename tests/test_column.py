@@ -1,0 +1,165 @@
+"""The column model (``scenario.solver = "column"``): its step against the NumPy twin, the
+steady sidewall chute against the closed form, the 2-D MPM on the same layer, conservation,
+resume, and the configuration check."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import make_sim
+
+from segmpm.analysis.closed_form import bagnold_velocity, sidewall_velocity
+from segmpm.column import COL_U, COL_Y, column_step_np
+from segmpm.config import ConfigError, load_config
+from segmpm.mpm.params import G_CFLOOR
+
+COLUMN = ["scenario.solver='column'"]
+#: a thin layer of the seed preset (8 mm, the 2 mm / 3 mm mixture), quick for both solvers
+THIN = ["geometry.depth=0.008", "geometry.length=0.001"]
+NONLOCAL = ["material.rheology='nonlocal'", "material.q_phi=0.75", "material.static_friction=0.36537",
+            "material.rate_sensitivity=0.38246", "material.nonlocal_amplitude=0.48953",
+            "material.fluidity_time=1e-3", "segregation.model='liu_henann'"]  # fmt: skip
+
+CASES = {
+    "local-eq6": [*THIN],
+    "nonlocal-lh-rate-wall": [
+        *THIN,
+        *NONLOCAL,
+        "material.fluidity_dt=1e-9",
+        "boundary.sidewall_friction_slow=0.1",
+        "boundary.sidewall_slip_speed=0.05",
+    ],  # fmt: skip
+    "elastic-friction-base": [
+        *THIN,
+        "material.model='linear_elastic'",
+        "boundary.base='friction'",
+        "boundary.base_friction=0.3",
+    ],  # fmt: skip
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_one_column_step_matches_numpy_reference(case, rng):
+    sim = make_sim([*COLUMN, *CASES[case], "boundary.ramp_time=0.1"])
+    sim._prime()
+    st = sim.state
+    # a non-trivial state: a sheared, slightly compressed column with random fluidity and φ
+    st.nodes[COL_U, 1:] = rng.uniform(0.0, 0.1, st.n)
+    st.nodes[COL_U + 1, 1:] = rng.normal(scale=1e-3, size=st.n)
+    st.eps[2] += rng.normal(scale=1e-6, size=st.n)
+    st.phi[:] = rng.uniform(0, 1, st.n)
+    st.gf[:] = rng.uniform(0, 50, st.n)
+    st.sc[1] = 0
+    sim._primed = False
+    sim._prime()
+    before = {k: v.copy() for k, v in st.arrays().items()}
+    ref = column_step_np(before, st.gp, st.mp)
+    status, _, n = sim.advance(1.0, 1)
+    assert status == 0 and n == 1
+    for k, b in ref.items():
+        a = st.arrays()[k]
+        scale = max(np.max(np.abs(b)), 1e-300)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-11 * scale, err_msg=k)
+    assert np.max(np.abs(st.nodes[COL_U] - before["nodes"][COL_U])) > 0
+    assert np.max(np.abs(st.sig - before["sig"])) > 0
+
+
+def _steady(over: list[str], t_end: float):
+    sim = make_sim([*COLUMN, *over, f"time.end={t_end}"])
+    sim.advance_to(t_end)
+    return sim
+
+
+@pytest.mark.parametrize(
+    "theta, H, mu_w, t_end", [(26.0, 0.006, 0.0, 0.6), (26.0, 0.012, 0.3, 0.8)]
+)
+def test_steady_chute_matches_the_local_closed_forms(theta, H, mu_w, t_end):
+    """The steady Bagnold layer and the sidewall chute of the Fei model (μ_eff = q_c + a I,
+    segregation off, docs/model.md §3): the column's nodal velocities against the closed forms
+    (``analysis.closed_form``): surface speed within 1 %, profile RMS within 1 % of it; a static
+    bed below the sidewall chute's flowing depth ζ_f."""
+    over = [f"geometry.slope_deg={theta}", f"geometry.depth={H}", "segregation.model='none'",
+            f"boundary.sidewall_friction={mu_w}", "material.stiffness_scale=1e-3"]  # fmt: skip
+    sim = _steady(over, t_end)
+    y, u = sim.state.nodes[COL_Y], sim.state.nodes[COL_U]
+    if mu_w == 0.0:
+        th, zf = bagnold_velocity(sim.config, y), H
+    else:
+        th, zf = sidewall_velocity(sim.config, y)
+    assert th[-1] > 0.01
+    assert abs(u[-1] / th[-1] - 1) < 0.01, (u[-1], th[-1])
+    assert np.sqrt(np.mean((u - th) ** 2)) / th[-1] < 0.01
+    bed = y < H - zf - 1.0e-3
+    if mu_w > 0.0:
+        assert bed.sum() > 3 and np.max(np.abs(u[bed])) < 1e-3 * th[-1]
+
+
+def test_column_and_mpm_agree_on_the_seed_layer():
+    """The column against the 2-D MPM (1-cell periodic strip) on a thin seed layer with
+    segregation: surface speed within 1 %, velocity RMS ≤ 0.01 u_s, φ_s RMS ≤ 0.02 at 0.5 s."""
+    over = [*THIN, "time.end=0.5"]
+    prof = {}
+    for solver in ("column", "mpm"):
+        sim = make_sim([f"scenario.solver='{solver}'", *over])
+        sim.advance_to(0.5)
+        prof[solver] = sim.profiles()
+    c, m = prof["column"], prof["mpm"]
+    ok = np.isfinite(c["velocity_x"]) & np.isfinite(m["velocity_x"])
+    us = float(np.nanmax(m["velocity_x"]))
+    assert us > 0.01
+    assert abs(np.nanmax(c["velocity_x"]) - us) / us < 0.01
+    assert np.sqrt(np.mean((c["velocity_x"][ok] - m["velocity_x"][ok]) ** 2)) / us <= 0.01
+    assert np.sqrt(np.mean((c["phi_small"][ok] - m["phi_small"][ok]) ** 2)) <= 0.02
+    # segregation happened (the comparison is not of two well-mixed layers)
+    assert np.nanmax(np.abs(m["phi_small"] - 0.5)) > 0.05
+
+
+def test_column_conserves_mass_and_small_grains_and_keeps_bounds():
+    sim = _steady([*THIN, *NONLOCAL], 0.5)
+    c = sim.conservation()
+    assert c["mass_drift"] == 0.0
+    assert abs(c["small_volume_drift"]) < 1e-12
+    assert np.all((sim.state.phi >= 0.0) & (sim.state.phi <= 1.0))
+    assert np.all(np.isfinite(sim.state.gf)) and np.max(sim.state.gf) > 0.0
+    assert sim.state.nodes[COL_U, 0] == 0.0  # the no-slip base
+
+
+def test_column_resume_is_bit_identical(tmp_path):
+    over = [*COLUMN, *THIN, *NONLOCAL, "time.end=0.3", "output.checkpoint_interval=0.1",
+            "output.profile_times=[0.0, 0.1, 0.3]"]  # fmt: skip
+    a = make_sim(over, out_dir=tmp_path / "a")
+    assert a.run().exit_code == 0
+    b = make_sim([*over, "time.end=0.1"], out_dir=tmp_path / "b")
+    assert b.run().exit_code == 0
+    c = make_sim(over, out_dir=tmp_path / "b")
+    assert c.run(resume=True).exit_code == 0
+    for k, arr in a.state.arrays().items():
+        np.testing.assert_array_equal(arr, c.state.arrays()[k], err_msg=k)
+    assert not (tmp_path / "a" / "fields").exists() or not any(
+        (tmp_path / "a" / "fields").iterdir()
+    )
+
+
+def test_column_needs_a_chute():
+    with pytest.raises(ConfigError, match="scenario.solver"):
+        load_config(
+            preset="chute_seed",
+            overrides=[*COLUMN, "scenario.kind='collapse'", "geometry.length=0.04"],
+        )
+
+
+def test_column_time_step_is_its_combined_courant_step_on_its_element():
+    """Δt = min(C Δy/(max(c + |v|) + 2 max ν/Δy), C_ν Δy²/(2 max ν)) with C =
+    time.column_courant on the shortest element (the wave speed and viscosity of the last step,
+    the wave speed never below the loaded material's floor)."""
+    sim = make_sim([*COLUMN, *THIN, "time.end=0.01", "time.column_courant=0.6"])
+    sim.advance_to(0.001)
+    st = sim.state
+    dy = float(np.min(np.diff(st.nodes[COL_Y])))
+    smax = max(float(st.sc[3]), float(st.gp[G_CFLOOR]))
+    nu = float(st.sc[4])
+    assert nu > 0.0  # the local law's σ^d and the column's bulk viscosity
+    want = min(0.6 * dy / (smax + 2.0 * nu / dy), sim.config.time.viscous_number * dy**2 / (2 * nu))
+    sim.advance(1.0, 1)
+    assert st.sc[5] == pytest.approx(want, rel=1e-12)
+    assert dy == pytest.approx(sim.config.grid.cell_size / 2, rel=0.02)  # n_ppc = 2
