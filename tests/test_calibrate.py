@@ -277,12 +277,12 @@ def test_worker_killed_mid_calibration_loses_no_evaluation(reference_run, refs, 
             deadline = time.time() + 60
             while time.time() < deadline and not any(f.done() for f in futures):
                 time.sleep(0.02)
-            killed["stamps"] = {p: p.stat().st_mtime_ns for p in out.glob("evals/*/*/result.json")}
+            stamps = {p: p.stat().st_mtime_ns for p in out.glob("evals/*/*/result.json")}
             busy = [w for w, keys in client.processing().items() if keys]
             if busy:  # the worker running a task of this batch
                 pids = client.run(os.getpid)
                 os.kill(pids[busy[0]], signal.SIGKILL)
-                killed["worker"] = busy[0]
+                killed.update(worker=busy[0], stamps=stamps)
 
         threading.Thread(target=kill, daemon=True).start()
 
@@ -446,9 +446,17 @@ def test_scheduler_and_worker_by_hand_then_predict(tmp_path, refs, capsys):
         assert r["phi_rms"] == f["phi_rms"] and r["u_rms_rel"] == f["u_rms_rel"]
     md = (out / "predict" / "crossval.md").read_text()
     assert "| held-out | steeper | 0.05 |" in md and "| fit | tiny | 0.025 |" in md
-    # the held-out case (same μ_w, 28°) is predicted as well as the fit within the DE's error
     mu = best["parameters"]["boundary.sidewall_friction"]
     assert math.isfinite(mu) and 0.1 <= mu <= 0.6
+    # the same CAL on a local cluster of one worker: the same history (seeded evolution), and
+    # calibrate --predict gives the same cross-validation
+    out2 = tmp_path / "out2"
+    args = ["calibrate", str(cal), "--out", str(out2), "--workers", "1", "--predict", str(held)]
+    assert main(args) == 0
+    _same_history(history(out2), history(out))
+    rows2 = json.loads((out2 / "predict" / "crossval.json").read_text())["rows"]
+    assert [(r["set"], r["case"], r["time"], r["phi_rms"]) for r in rows2] == [
+        (r["set"], r["case"], r["time"], r["phi_rms"]) for r in rows]  # fmt: skip
 
 
 @pytest.mark.skipif(not HAS_COLUMN, reason="scenario.solver (the column model) not in this segmpm")
@@ -479,7 +487,7 @@ base = "base.toml"
 times = [1.0, 2.0]
 [optimiser]
 samples = 8
-max_evaluations = 40
+max_evaluations = 60
 [inner]
 model = "column"
 """)
