@@ -10,10 +10,12 @@ reference profiles with the ``compare`` metric, on dask.distributed (docs/calibr
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import signal
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -184,10 +186,30 @@ def run_calibrate(cal_path: str, out: str = "calibrate-out", scheduler: str | No
     if predict_cases is not None and not Path(predict_cases).is_file():
         print(f"segmpm: error: --predict {predict_cases!r}: no such file", file=sys.stderr)
         return EXIT_INVALID
-    code = run_calibration(cal_path, out, scheduler, workers)
+    with _sigterm_interrupts():
+        code = run_calibration(cal_path, out, scheduler, workers)
     if code != EXIT_OK or predict_cases is None:
         return code
     return run_predict(out, predict_cases, None, scheduler, workers)
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts() -> Iterator[None]:
+    """SIGTERM (a batch system's preemption) stops like Ctrl-C: the history is written and the
+    exit code is 130; the same command continues later."""
+
+    def handler(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    try:
+        old = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 # ---------------------------------------------------------------------------------- predict
@@ -305,7 +327,11 @@ def run_predict(cal_out: str | Path, heldout: str | None = None, out: str | None
                 scheduler: str | None = None, workers: int = 0) -> int:  # fmt: skip
     """CLI entry point of ``segmpm predict``."""
     try:
-        data = predict(cal_out, heldout, out, scheduler, workers)
+        with _sigterm_interrupts():
+            data = predict(cal_out, heldout, out, scheduler, workers)
+    except KeyboardInterrupt:
+        print("segmpm predict: interrupted; re-run the same command to continue", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except ConfigError as err:
         print(f"segmpm: error: {err}", file=sys.stderr)
         return EXIT_INVALID

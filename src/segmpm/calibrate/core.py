@@ -64,7 +64,9 @@ class Evaluator:
     """Evaluates batches of parameter vectors, reusing the evaluations found in ``OUT/evals``.
 
     The k-th distinct vector requested gets the index k (``OUT/evals/{k:05d}``), whatever the
-    order in which the workers finish, so a seeded calibration always has the same history. An
+    order in which the workers finish, so a seeded calibration always has the same history (were
+    a continued calibration to take another path, e.g. on a machine whose runs differ in the last
+    bit, its new vectors get free indices after the known ones: nothing on disk is replaced). An
     evaluation is written (``eval.json``, atomically) as soon as its cases have finished; a
     vector found there with the same configurations is not run again."""
 
@@ -161,8 +163,10 @@ class Evaluator:
                     self.session[k] = old
                     self.n_reused += 1
                 else:
-                    for dk in [dk for dk, r in self.disk.items() if r.index == idx]:
-                        del self.disk[dk]  # another vector had this index: it is replaced
+                    taken = {r.index for r in self.disk.values()}
+                    taken |= {r.index for r in self.session.values()}
+                    if idx in taken:  # only if a run differs from an earlier one: keep both
+                        idx = max(taken) + 1
                     rec = Record(idx, list(k), stage, config_sha256=self._hashes(list(k)))
                     self.session[k] = rec
                     todo.append(rec)
