@@ -1,4 +1,4 @@
-"""The ``segmpm`` command: run, validate, compare, plot, sweep, bench.
+"""The ``segmpm`` command: run, validate, compare, plot, sweep, calibrate, predict, bench.
 
 Exit codes: 0 success; 2 invalid input (configuration, output directory, a locked or occupied
 ``--out``, a changed configuration on ``--resume``); 3 numerical failure; 4 an output or checkpoint
@@ -81,6 +81,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", help="address of a dask scheduler (default: a local cluster)")
     p.add_argument("--workers", type=int, default=0, help="local workers (default: cores)")
 
+    p = sub.add_parser("calibrate", help="fit configuration keys to reference profiles "
+                       "(dask.distributed; docs/calibrate.md)")  # fmt: skip
+    p.add_argument("cal", help="CAL.toml (parameters, cases, objective, optimiser, inner model)")
+    p.add_argument("--out", default="calibrate-out",
+                   help="output directory (re-running the same command continues a calibration)")  # fmt: skip
+    p.add_argument("--scheduler", help="address of a dask scheduler (default: a local cluster)")
+    p.add_argument("--workers", type=int, default=0, help="local workers (default: 2)")
+    p.add_argument(
+        "--predict",
+        metavar="HELDOUT.toml",
+        help="after the fit, run its parameters on these held-out cases (as predict)",
+    )
+
+    p = sub.add_parser("predict", help="run calibrated parameters on held-out cases: the "
+                       "cross-validation table")  # fmt: skip
+    p.add_argument("cal_out", help="output directory of segmpm calibrate")
+    p.add_argument("--cases", help="TOML file of [[cases]] held out of the fit (default: none, "
+                   "only the fit cases)")  # fmt: skip
+    p.add_argument("--out", help="output directory (default: CAL_OUT/predict)")
+    p.add_argument("--scheduler", help="address of a dask scheduler (default: a local cluster)")
+    p.add_argument("--workers", type=int, default=0, help="local workers (default: 2)")
+
     p = sub.add_parser("bench", help="throughput benchmarks (particle-steps per second)")
     p.add_argument("--sizes", type=int, nargs="+", default=[8000, 32000], help="material points")
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts")
@@ -160,6 +182,14 @@ def _dispatch(args: argparse.Namespace) -> int:
         from .sweep import run_sweep
 
         return run_sweep(args.sweep, args.out, args.scheduler, args.workers)
+    if args.command == "calibrate":
+        from .calibrate import run_calibrate
+
+        return run_calibrate(args.cal, args.out, args.scheduler, args.workers, args.predict)
+    if args.command == "predict":
+        from .calibrate import run_predict
+
+        return run_predict(args.cal_out, args.cases, args.out, args.scheduler, args.workers)
     if args.command == "bench":
         from .bench import run_bench, run_contended
 

@@ -35,6 +35,7 @@ Exit code 0 if every member completed, 3 if any did not (they are listed), 2 on 
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import itertools
 import json
@@ -43,6 +44,7 @@ import os
 import sys
 import time as _time
 import tomllib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -269,11 +271,18 @@ def run_member(config: dict[str, Any], out_dir: str, resume: bool) -> dict[str, 
                 "time": None, "wall_time_s": _time.perf_counter() - t0}  # fmt: skip
 
 
-def _execute(todo: list[Member], scheduler: str | None, workers: int) -> None:
-    """Run ``todo`` on dask.distributed, updating each member's status as results arrive."""
+@contextlib.contextmanager
+def dask_client(scheduler: str | None, workers: int, n_tasks: int, what: str = "sweep",
+                unit: str = "member(s)") -> Iterator[Any]:  # fmt: skip
+    """A dask.distributed client: on ``scheduler`` if given, else on a ``LocalCluster`` of
+    ``min(workers or 2, n_tasks)`` worker processes with one thread each and
+    ``NUMBA_NUM_THREADS=1`` (one member per core). Closed (with its cluster) on exit.
+
+    Raises :class:`ConfigError` when the scheduler cannot be reached (exit 2). Shared by
+    ``segmpm sweep`` and ``segmpm calibrate``."""
     import logging
 
-    from distributed import Client, LocalCluster, as_completed
+    from distributed import Client, LocalCluster
 
     cluster = None
     if scheduler:
@@ -282,7 +291,7 @@ def _execute(todo: list[Member], scheduler: str | None, workers: int) -> None:
         except (OSError, TimeoutError, ValueError) as err:
             raise ConfigError(f"--scheduler {scheduler!r}: cannot connect: {err}") from None
     else:
-        n = max(1, min(workers or 2, len(todo)))
+        n = max(1, min(workers or 2, n_tasks))
         cluster = LocalCluster(
             n_workers=n,
             threads_per_worker=1,
@@ -292,9 +301,23 @@ def _execute(todo: list[Member], scheduler: str | None, workers: int) -> None:
             env={"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"},
         )
         client = Client(cluster)
-    print(f"segmpm sweep: {len(todo)} member(s) on {client.scheduler.address if cluster is None else f'{len(cluster.workers)} local worker(s)'}",
-          file=sys.stderr)  # fmt: skip
+    where = (
+        client.scheduler.address if cluster is None else f"{len(cluster.workers)} local worker(s)"
+    )
+    print(f"segmpm {what}: {n_tasks} {unit} on {where}", file=sys.stderr)
     try:
+        yield client
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _execute(todo: list[Member], scheduler: str | None, workers: int) -> None:
+    """Run ``todo`` on dask.distributed, updating each member's status as results arrive."""
+    from distributed import as_completed
+
+    with dask_client(scheduler, workers, len(todo)) as client:
         futures = {}
         for m in todo:
             m.dir.mkdir(parents=True, exist_ok=True)
@@ -315,10 +338,6 @@ def _execute(todo: list[Member], scheduler: str | None, workers: int) -> None:
             print(f"  member {m.name} ({m.label()}): {m.status}"
                   + (f" in {wall:.1f} s" if wall else "") + (f" — {m.message}" if m.message else ""),
                   file=sys.stderr)  # fmt: skip
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
 
 
 # ---------------------------------------------------------------------------------- ensemble.nc
