@@ -163,3 +163,17 @@ def test_column_time_step_is_its_combined_courant_step_on_its_element():
     sim.advance(1.0, 1)
     assert st.sc[5] == pytest.approx(want, rel=1e-12)
     assert dy == pytest.approx(sim.config.grid.cell_size / 2, rel=0.02)  # n_ppc = 2
+
+
+def test_every_profile_time_is_written_when_checkpoints_fall_on_them(tmp_path):
+    """Ten checkpoints of 0.1 s do not sum to 1.0 s exactly; the output at 1.0 s (and at 0.3 s,
+    where 3 × 0.1 lies above) must still be written, once each (found on the stiffness study,
+    whose 1 s profile was missing)."""
+    import xarray as xr
+
+    times = [0.0, 0.3, 0.7, 1.0]
+    sim = make_sim([*COLUMN, *THIN, "time.end=1.0", "output.checkpoint_interval=0.1",
+                    f"output.profile_times={times!r}"], out_dir=tmp_path)  # fmt: skip
+    assert sim.run().exit_code == 0
+    with xr.open_dataset(tmp_path / "profiles.nc", engine="h5netcdf") as ds:
+        assert ds["time"].values.tolist() == times

@@ -324,7 +324,9 @@ def test_time_step_collapse_reports_the_collapsed_step(tmp_path, capsys):
     assert f["reason"] == "time step collapsed"
     assert 0 < f["dt_collapsed"] < f["dt_min"] == 1e-4
     assert "Courant" in f["dt_limit"]
-    cfg = make_sim(TINY).state.gp
+    from segmpm.config import DEFAULT_PRESET
+
+    cfg = make_sim(TINY, preset=DEFAULT_PRESET).state.gp  # `segmpm run` without CONFIG
     h, cfl = cfg[simmod.G_H], cfg[simmod.G_CFL]
     assert f["dt_collapsed"] == pytest.approx(cfl * h / max(f["max_signal_speed"],
                                                             cfg[simmod.G_CFLOOR]))  # fmt: skip
@@ -618,7 +620,7 @@ def test_compile_time_is_reported_apart(tmp_path, capsys, monkeypatch):
 
     slow_compile.signatures = []  # as in a fresh process
     monkeypatch.setattr(simmod, "advance", slow_compile)
-    monkeypatch.setattr(simmod, "kernel_cache_warm", lambda: False)  # as in a fresh install
+    monkeypatch.setattr(simmod, "kernel_cache_warm", lambda *loop: False)  # as in a fresh install
     assert main(["run", "--out", str(tmp_path), *_args("time.end=0.01",
                  "output.profile_times=[0.0]")]) == 0  # fmt: skip
     err = capsys.readouterr().err

@@ -41,7 +41,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from . import _llvm_options  # noqa: F401  (before any kernel of the loop compiles)
 from .config import Config
@@ -204,7 +204,7 @@ def _nodes(nodes, sig, vol0, J, pres, gp, dt, ramp, lx):
                                                 nodes[COL_V, 0])  # fmt: skip
 
 
-@njit(cache=True, error_model="numpy", fastmath={"contract"})
+@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
 def advance_column(x, v, mass, vol0, J, eps, sig, phi, gf, diag, s_int, g_int, nodes, seg_vol,
                    gp, mp, sc, fw, seg_prm, cg, seg_work, t_stop, max_steps):  # fmt: skip
     """Advance the column to ``t_stop`` (exactly) or by ``max_steps`` steps (the contract of
@@ -238,15 +238,22 @@ def advance_column(x, v, mass, vol0, J, eps, sig, phi, gf, diag, s_int, g_int, n
         if gp[G_RAMP] > 0.0:
             ramp = min(1.0, (t + dt) / gp[G_RAMP])
 
-        _nodes(nodes, sig, vol0, J, diag[0], gp, dt, ramp, lx)
-        if var == VAR_FEI_LINEAR:
-            _elements(VAR_FEI_LINEAR, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp)
-        elif var == VAR_NGF:
-            _elements(VAR_NGF, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp)
-        elif var == VAR_FEI_POWER:
-            _elements(VAR_FEI_POWER, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp)
-        else:
-            _elements(VAR_ELASTIC, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp)
+        # each pass is a one-block parallel region: Numba's parallel lowering hands the arrays to
+        # the region as distinct arguments, and only then does LLVM vectorise the loops (the
+        # material pass 3× faster than the same loop inline: docs/column.md)
+        for _ in prange(1):
+            _nodes(nodes, sig, vol0, J, diag[0], gp, dt, ramp, lx)
+        for _ in prange(1):
+            if var == VAR_FEI_LINEAR:
+                _elements(VAR_FEI_LINEAR, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int,
+                          mp)  # fmt: skip
+            elif var == VAR_NGF:
+                _elements(VAR_NGF, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp)
+            elif var == VAR_FEI_POWER:
+                _elements(VAR_FEI_POWER, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int,
+                          mp)  # fmt: skip
+            else:
+                _elements(VAR_ELASTIC, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp)
         smax, numax, bad = _check(J, sig, diag)
         for j in range(n + 1):
             nodes[COL_Y, j] += dt * nodes[COL_V, j]

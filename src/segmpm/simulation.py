@@ -406,9 +406,10 @@ class Simulation:
                 self.save_checkpoint(ckpt_path)  # a last good state exists from the start
             keep = True
             written = set(writer.times)
-            next_ckpt = (
-                (math.floor(self.time / ckpt_dt + 1e-9) + 1) * ckpt_dt if ckpt_dt > 0 else math.inf
-            )
+            # checkpoint k at k·Δt_ckpt, a product rather than a running sum: the same times
+            # in a fresh and a resumed run, and no drift onto (or off) an output time
+            k_ckpt = math.floor(self.time / ckpt_dt + 1e-9) + 1 if ckpt_dt > 0 else 0
+            next_ckpt = k_ckpt * ckpt_dt if ckpt_dt > 0 else math.inf
             bar = _progress(show, end, self.time, self.state.n)
             bar.start(self.steps, self.wall_time)
             self._write_runinfo(status, None)
@@ -442,11 +443,15 @@ class Simulation:
                 if self._interrupt is not None:
                     raise KeyboardInterrupt
                 if abs(self.time - target) <= 1e-12 * max(1.0, target):
-                    if target in pending:
-                        self._output(target, writer, vtk)
+                    # every output time the state has reached (a checkpoint time within the
+                    # tolerance of an output time must not make the output be skipped)
+                    for t_out in pending:
+                        if t_out <= self.time + 1e-12:
+                            self._output(t_out, writer, vtk)
                     if target >= next_ckpt - 1e-12:
                         self.save_checkpoint(ckpt_path)
-                        next_ckpt += ckpt_dt
+                        k_ckpt += 1
+                        next_ckpt = k_ckpt * ckpt_dt
                     self._write_runinfo("running", None)
             self.save_checkpoint(ckpt_path)
             if cfg.output.figures and writer.times:

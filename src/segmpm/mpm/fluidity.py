@@ -164,6 +164,8 @@ def _diffuse(fw, gp, dt, dmax):
     lap = fw[F_LAP]
     g = fw[F_G]
     kind = fw[F_KIND]
+    # a one-node-wide periodic grid (the column model) has no x-neighbours but the node itself
+    q0 = 2 if (periodic and nx == 1) else 0
     for _ in range(nsub):
         for i in range(nx):
             for j in range(ny):
@@ -173,7 +175,7 @@ def _diffuse(fw, gp, dt, dmax):
                 di = dcoef[i, j]
                 gi = g[i, j]
                 acc = 0.0
-                for q in range(4):
+                for q in range(q0, 4):
                     if q == 0:
                         a, b = i - 1, j
                     elif q == 1:
