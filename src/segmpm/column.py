@@ -92,9 +92,8 @@ from .state import State
 
 #: the column's floor on ``material.bulk_viscosity`` (ζ_b as a fraction of ρ c h): the column has
 #: no transfer dissipation, and without a volumetric damping its compression modes ring and grow
-#: (on the nonlocal seed case within 0.1 s at any Courant number; on the local one above 0.8;
-#: 0.05 ρ c h, i.e. 0.1 ρ c Δy, damps both and leaves the viscous step limit unchanged),
-#: throwing the top of the layer into the gas state (docs/column.md)
+#: (on the nonlocal seed case within 0.1 s at any Courant number), throwing the top of the layer
+#: into the gas state (docs/column.md); 0.05 ρ c h, i.e. 0.1 ρ c Δy, damps them
 COLUMN_BULK_VISCOSITY = 0.05
 
 #: rows of the node record ``State.nodes`` (4, N + 1): position y (m), velocity u (downslope)

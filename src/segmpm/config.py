@@ -533,22 +533,23 @@ def validate_data(data: dict[str, Any]) -> Config:
         raise ConfigError(_format_validation_error(err, data)) from None
 
 
-def read_toml(path: str | Path) -> dict[str, Any]:
-    """Read a TOML file into raw data, with errors as :class:`ConfigError`."""
+def read_toml(path: str | Path, what: str = "configuration") -> dict[str, Any]:
+    """Read a TOML file into raw data, with errors as :class:`ConfigError` naming the file as
+    ``what`` ("configuration", "sweep", "calibration")."""
     p = Path(path)
     if not p.exists():
-        raise ConfigError(f"configuration file {str(p)!r} does not exist")
+        raise ConfigError(f"{what} file {str(p)!r} does not exist")
     if not p.is_file():
-        raise ConfigError(f"configuration path {str(p)!r} is not a file")
+        raise ConfigError(f"{what} path {str(p)!r} is not a file")
     try:
         with p.open("rb") as fh:
             return tomllib.load(fh)
     except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"configuration file {str(p)!r} is not valid TOML: {err}") from None
+        raise ConfigError(f"{what} file {str(p)!r} is not valid TOML: {err}") from None
     except RecursionError:
-        raise ConfigError(f"configuration file {str(p)!r} is nested too deeply") from None
+        raise ConfigError(f"{what} file {str(p)!r} is nested too deeply") from None
     except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"configuration file {str(p)!r} cannot be read: {err}") from None
+        raise ConfigError(f"{what} file {str(p)!r} cannot be read: {err}") from None
 
 
 def preset_names() -> list[str]:

@@ -43,7 +43,6 @@ import math
 import os
 import sys
 import time as _time
-import tomllib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -95,17 +94,7 @@ class Member:
 
 def _read_sweep(path: Path) -> tuple[dict[str, Any], dict[str, list[Any]], str]:
     """(base data, parameters, mode) of a sweep file, raising :class:`ConfigError`."""
-    if not path.exists():
-        raise ConfigError(f"sweep file {str(path)!r} does not exist")
-    if not path.is_file():
-        raise ConfigError(f"sweep path {str(path)!r} is not a file")
-    try:
-        with path.open("rb") as fh:
-            doc = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"sweep file {str(path)!r} is not valid TOML: {err}") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"sweep file {str(path)!r} cannot be read: {err}") from None
+    doc = read_toml(path, "sweep")
     where = f"sweep file {str(path)!r}"
     unknown = [k for k in doc if k not in SWEEP_KEYS]
     if unknown:

@@ -12,7 +12,6 @@ import hashlib
 import json
 import math
 import re
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -251,17 +250,7 @@ def read_cal(path: str | Path) -> tuple[CalSpec, dict[str, Any]]:
     """Read and validate ``CAL.toml`` (the schema only; see :func:`resolve`)."""
     p = Path(path)
     where = f"calibration file {str(p)!r}"
-    if not p.exists():
-        raise ConfigError(f"{where} does not exist")
-    if not p.is_file():
-        raise ConfigError(f"calibration path {str(p)!r} is not a file")
-    try:
-        with p.open("rb") as fh:
-            doc = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{where} is not valid TOML: {err}") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"{where} cannot be read: {err}") from None
+    doc = read_toml(p, "calibration")
     try:
         return CalSpec.model_validate(doc), doc
     except ValidationError as err:
