@@ -29,7 +29,7 @@ def main() -> int:
     args = ap.parse_args()
     runs = {}
     for cfl in sorted(args.cfl):
-        cfg = load_config(overrides=["output.progress=false", "output.fields=false",
+        cfg = load_config(preset="chute_seed", overrides=["output.progress=false", "output.fields=false",
                                      f"time.cfl={cfl!r}"])  # fmt: skip
         sim = Simulation(cfg)
         t0 = time.perf_counter()

@@ -45,7 +45,17 @@ def run_case(theta, depth, width, mu_w, scale, end, cell) -> dict:
         "output.fields=false", "output.figures=false", f"grid.cell_size={cell!r}",
         f"geometry.length={2 * cell!r}", f"output.profile_bin={cell / 2!r}",
     ]  # fmt: skip
-    cmd = [sys.executable, "-m", "segmpm.cli", "run", "--out", str(out), "--no-progress"]
+    # the seed's local preset, which these studies are about (not the nonlocal default)
+    cmd = [
+        sys.executable,
+        "-m",
+        "segmpm.cli",
+        "run",
+        "chute_seed",
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
     for s in sets:
         cmd += ["--set", s]
     subprocess.run(cmd, check=True)

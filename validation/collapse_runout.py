@@ -49,7 +49,7 @@ def run(a: float, H_CELL: float = H_CELL, base: str = "noslip", base_mu: float =
     length = L0 * (2.0 + 1.6 * experiment(a))
     length = math.ceil(length / H_CELL) * H_CELL
     t_end = 4.0 * math.sqrt(H0 / 9.81) + 0.1
-    cfg = load_config(overrides=[
+    cfg = load_config(preset="chute_seed", overrides=[
         "scenario.kind='collapse'", "geometry.slope_deg=0", f"geometry.length={length!r}",
         f"geometry.column_width={L0}", f"geometry.column_height={H0!r}", "geometry.headroom=0.3",
         f"grid.cell_size={H_CELL}", "material.stiffness_scale=1e-3", "segregation.model='none'",

@@ -44,7 +44,17 @@ def run(name: str, end: float) -> pathlib.Path:
         if d.get("status") == "completed" and d.get("time_end") == end:
             return out
     times = [t for t in TIMES if t <= end]
-    cmd = [sys.executable, "-m", "segmpm.cli", "run", "--out", str(out), "--no-progress"]
+    # the seed's local preset, which these studies are about (not the nonlocal default)
+    cmd = [
+        sys.executable,
+        "-m",
+        "segmpm.cli",
+        "run",
+        "chute_seed",
+        "--out",
+        str(out),
+        "--no-progress",
+    ]
     if (out / "checkpoint" / "state.npz").exists():
         cmd.append("--resume")
     else:
