@@ -177,3 +177,21 @@ def test_every_profile_time_is_written_when_checkpoints_fall_on_them(tmp_path):
     assert sim.run().exit_code == 0
     with xr.open_dataset(tmp_path / "profiles.nc", engine="h5netcdf") as ds:
         assert ds["time"].values.tolist() == times
+
+
+def test_column_runs_from_the_command_line_without_particle_snapshots(tmp_path):
+    """`segmpm run PRESET --set scenario.solver="column"`: the ordinary outputs (profiles, run.json,
+    checkpoint, config), no particle snapshots even with output.fields = true, and `plot` works."""
+    from segmpm.cli import main
+
+    out = tmp_path / "col"
+    args = ["run", "chute_nonlocal", "--out", str(out), "--no-progress"]
+    for s in ("scenario.solver='column'", "time.end=0.05", "output.fields=true",
+              "output.profile_times=[0.0, 0.05]", *THIN):  # fmt: skip
+        args += ["--set", s]
+    assert main(args) == 0
+    for f in ("profiles.nc", "run.json", "config.toml", "checkpoint/state.npz"):
+        assert (out / f).is_file(), f
+    assert not (out / "fields").exists() or not any((out / "fields").iterdir())
+    assert 'solver = "column"' in (out / "config.toml").read_text()
+    assert main(["plot", str(out)]) == 0
