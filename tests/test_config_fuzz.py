@@ -235,6 +235,8 @@ def valid_data(draw) -> dict[str, Any]:
     ppc = draw(st.integers(1, 6))
     length = draw(st.integers(3, 40)) * h
     data.setdefault("scenario", {})["kind"] = kind
+    if kind != "chute":  # the column model is for chute layers only
+        data["scenario"]["solver"] = "mpm"
     data.setdefault("grid", {}).update(cell_size=h, particles_per_cell=ppc)
     data.setdefault("geometry", {}).update(
         length=length,

@@ -29,7 +29,7 @@ RUN = [
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
-    args = ["run", "--out", str(out)]
+    args = ["run", "chute_seed", "--out", str(out)]  # make_sim below builds on chute_seed
     for s in RUN:
         args += ["--set", s]
     assert main(args) == 0
