@@ -162,7 +162,7 @@ def _check(J, sig, diag):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _node(j, fx, fy, vp, nodes, gp, dt, gx, gy, sw, sw0, uw, lx):
+def _node(j, fx, fy, vp, nodes, dt, gx, gy, sw, sw0, uw, lx):
     """The new velocity of node j from its net internal force per unit width (fx, fy), gravity
     and the sidewall force on vp = Σ V p of its half elements."""
     im = 1.0 / nodes[COL_M, j]
@@ -192,13 +192,13 @@ def _nodes(nodes, sig, vol0, J, pres, gp, dt, ramp, lx):
         fx = sig[2, j] - sig[2, b]
         fy = sig[1, j] - sig[1, b]
         vp = 0.5 * vol0[j] * J[j] * pres[j] + 0.5 * vol0[b] * J[b] * pres[b]
-        _node(j, fx, fy, vp, nodes, gp, dt, gx, gy, sw, sw0, uw, lx)
+        _node(j, fx, fy, vp, nodes, dt, gx, gy, sw, sw0, uw, lx)
     # the top node (the free surface: only the element below) and the base node
     b = ne - 1
-    _node(ne, -sig[2, b], -sig[1, b], 0.5 * vol0[b] * J[b] * pres[b], nodes, gp, dt, gx, gy, sw,
-          sw0, uw, lx)  # fmt: skip
-    _node(0, sig[2, 0], sig[1, 0], 0.5 * vol0[0] * J[0] * pres[0], nodes, gp, dt, gx, gy, sw,
-          sw0, uw, lx)  # fmt: skip
+    _node(ne, -sig[2, b], -sig[1, b], 0.5 * vol0[b] * J[b] * pres[b], nodes, dt, gx, gy, sw, sw0,
+          uw, lx)  # fmt: skip
+    _node(0, sig[2, 0], sig[1, 0], 0.5 * vol0[0] * J[0] * pres[0], nodes, dt, gx, gy, sw, sw0,
+          uw, lx)  # fmt: skip
     nodes[COL_U, 0], nodes[COL_V, 0] = apply_bc(gp, 0.5 * lx, nodes[COL_Y, 0], nodes[COL_U, 0],
                                                 nodes[COL_V, 0])  # fmt: skip
 
@@ -254,6 +254,8 @@ def advance_column(x, v, mass, vol0, J, eps, sig, phi, gf, diag, s_int, g_int, n
             else:
                 _elements(VAR_ELASTIC, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp)
         smax, numax, bad = _check(J, sig, diag)
+        # separate passes, each vectorisable (fused, the position update carries a dependence
+        # from element to element and the step was slower)
         for j in range(n + 1):
             nodes[COL_Y, j] += dt * nodes[COL_V, j]
         for e in range(n):

@@ -200,16 +200,13 @@ class Simulation:
                 st.s_int, st.g_int, st.nodes, w["seg_vol"], st.gp, st.mp, st.sc, w["fw"],
                 st.seg_prm, st.cg, st.seg_work, float(t_stop), int(max_steps),
             )  # fmt: skip
-            self.wall_time += _time.perf_counter() - t0
-            if status != ST_OK:
-                self._failed = (int(status), int(idx))
-            return int(status), int(idx), int(n)
-        status, idx, n = advance(
-            st.x, st.v, st.C, st.mass, st.vol0, st.J, st.eps, st.sig, st.phi, st.gf, st.diag,
-            st.s_int, st.g_int, st.gp, st.mp, st.sc, w["grid"], w["gv"],
-            w["strip_start"], w["cursor"], w["order"], _bounds(w), w["flags"], w["x_old"], w["lg"],
-            w["fw"], st.seg_prm, st.cg, st.seg_work, float(t_stop), int(max_steps),
-        )  # fmt: skip
+        else:
+            status, idx, n = advance(
+                st.x, st.v, st.C, st.mass, st.vol0, st.J, st.eps, st.sig, st.phi, st.gf,
+                st.diag, st.s_int, st.g_int, st.gp, st.mp, st.sc, w["grid"], w["gv"],
+                w["strip_start"], w["cursor"], w["order"], _bounds(w), w["flags"], w["x_old"],
+                w["lg"], w["fw"], st.seg_prm, st.cg, st.seg_work, float(t_stop), int(max_steps),
+            )  # fmt: skip
         self.wall_time += _time.perf_counter() - t0
         if status != ST_OK:
             self._failed = (int(status), int(idx))
