@@ -1,0 +1,765 @@
+"""Dimension-generic MPM kernels: the one source of the 2-D and the 3-D engine.
+
+This file is a *template*. :mod:`segmpm.engine.codegen` writes it out once per dimension with the
+line ``D = 2`` set to the dimension (files ``kernels_d2.py`` and ``kernels_d3.py`` in the keyed
+kernel cache, so that Numba's ``cache=True`` works on them), and imports the copy. ``D`` is then
+a compile-time constant: every ``if D == 3`` is pruned, the z stencil of 2-D is one node of
+weight 1, and the zero out-of-plane components of the tensors fold away. The physics is written
+once, in full 3-D tensor form; 2-D plane strain is the special case with no z velocity.
+
+Order of a step (:func:`advance`, docs/architecture.md):
+
+1. sort the points into slabs of ``SLAB`` cell layers in y (P2G without atomics, deterministic);
+2. P2G: mass, APIC momentum, internal force −Σ V σ ∇w, Σ w V p;
+3. grid update: v* = (m v + Δt (f + m g))/m, the 2-D sidewall body force, the boundary planes;
+4. G2P: APIC/AFLIP velocity, affine matrix C, velocity gradient L, advection, J;
+5. material law (Fei et al. 2016, Jiang–Liu elasticity + yield cap + μ(I)) and the step check;
+6. (every segregation subcycle) the concentration step — not in the generic engine yet.
+
+Points, grid and parameters are the named records of :mod:`segmpm.engine.records`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from segmpm import _llvm_options  # noqa: F401  (before any kernel compiles)
+from segmpm._fmath import flog, fsqrt
+from segmpm.engine.records import BC_NOSLIP, BC_OPEN, BC_SLIP, BC_SYMMETRY
+from segmpm.materials.params import DRIVER_A, DRIVER_B, DRIVER_P, KIND_FEI2016
+from segmpm.mpm.boundary import sidewall_drag
+from segmpm.mpm.params import (
+    ST_DT_COLLAPSE,
+    ST_LEFT_GRID,
+    ST_NONFINITE,
+    ST_OK,
+    TRANSFER_AFLIP,
+)
+from segmpm.mpm.shape import bspline2_frac
+from segmpm.mpm.transfer import _balance, counting_sort
+
+#: the dimension of this copy (set by the code generator)
+D = 2
+
+#: stencil nodes along z: three in 3-D, one of weight 1 in 2-D
+SZ = 3 if D == 3 else 1
+#: stored components of a symmetric tensor: xx, yy, zz, xy and, in 3-D, xz, yz
+NE = 6 if D == 3 else 4
+#: nodal P2G fields: mass, momentum (D), force (D), Σ w V p
+F_M = 0
+F_P = 1
+F_F = 1 + D
+F_VP = 1 + 2 * D
+NF = 2 + 2 * D
+#: nodal velocity lanes: the updated velocity v* (D) and the old velocity m v / m (D)
+V_NEW = 0
+V_OLD = D
+NV = 2 * D
+#: cell layers (in y) per P2G slab: a point touches 3 node layers, so slabs two apart share none
+SLAB = 3
+
+
+# ---------------------------------------------------------------------------------------------
+# small helpers: a point's vector and tensors as full 3-D tuples (zeros out of plane in 2-D)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _vec(a, p):
+    """Column p of a (D, N) array as (x, y, z)."""
+    if D == 3:
+        return a[0, p], a[1, p], a[2, p]
+    return a[0, p], a[1, p], 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _mat(a, p):
+    """Row-major D×D matrix of point p (a (D·D, N) array) as a full 3×3, row-major."""
+    if D == 3:
+        return (a[0, p], a[1, p], a[2, p], a[3, p], a[4, p], a[5, p], a[6, p], a[7, p],
+                a[8, p])  # fmt: skip
+    return a[0, p], a[1, p], 0.0, a[2, p], a[3, p], 0.0, 0.0, 0.0, 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _sym(a, p):
+    """Symmetric tensor of point p as (xx, yy, zz, xy, xz, yz)."""
+    if D == 3:
+        return a[0, p], a[1, p], a[2, p], a[3, p], a[4, p], a[5, p]
+    return a[0, p], a[1, p], a[2, p], a[3, p], 0.0, 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _put_sym(a, p, xx, yy, zz, xy, xz, yz):
+    a[0, p] = xx
+    a[1, p] = yy
+    a[2, p] = zz
+    a[3, p] = xy
+    if D == 3:
+        a[4, p] = xz
+        a[5, p] = yz
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _wrap(i, n):
+    """Periodic node index for i in [−n, 2n)."""
+    if i < 0:
+        return i + n
+    if i >= n:
+        return i - n
+    return i
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _z_axis(z, z0, ih):
+    """The z factor of the stencil: B-spline in 3-D; one node of weight 1 in 2-D."""
+    if D == 3:
+        return bspline2_frac((z - z0) * ih)
+    return 0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. slabs of the P2G sort
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def slab_of(y, y0, ih, nslabs):
+    """P2G slab of a point at height y, clamped to [0, nslabs)."""
+    s = int(math.floor((y - y0) * ih)) // SLAB
+    return min(max(s, 0), nslabs - 1)
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def slab_index(P, prm, nslabs):
+    """``P.cursor[p]``: the slab of every point."""
+    ih = 1.0 / prm[0].h
+    y0 = prm[0].origin[1]
+    x = P.x
+    cursor = P.cursor
+    for p in prange(x.shape[1]):
+        cursor[p] = slab_of(x[1, p], y0, ih, nslabs)
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. P2G
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, g, prm, ny, nz, with_force):
+    """P2G of point p onto its 3 × 3 (× 3) nodes (``g``: the flat nodal array)."""
+    pr = prm[0]
+    h = pr.h
+    ih = 1.0 / h
+    nx = pr.nodes[0]
+    periodic = pr.periodic_x != 0
+    bx, wx0, wx1, wx2, dx0, dx1, dx2, fx = bspline2_frac((x[0, p] - pr.origin[0]) * ih)
+    by, wy0, wy1, wy2, dy0, dy1, dy2, fy = bspline2_frac((x[1, p] - pr.origin[1]) * ih)
+    if D == 3:
+        zp = x[2, p]
+    else:
+        zp = 0.0
+    bz, wz0, wz1, wz2, dz0, dz1, dz2, fz = _z_axis(zp, pr.origin[2], ih)
+    wx = (wx0, wx1, wx2)
+    dx = (dx0, dx1, dx2)
+    wy = (wy0, wy1, wy2)
+    dy = (dy0, dy1, dy2)
+    wz = (wz0, wz1, wz2)
+    dz = (dz0, dz1, dz2)
+    m = mass[p]
+    vol = vol0[p] * J[p]
+    # −V σ·∇w with ∇w per grid unit: the 1/h is folded into the stress
+    fv = -vol * ih
+    sxx, syy, szz, sxy, sxz, syz = _sym(sig, p)
+    vp = vol * pres[p]
+    vx, vy, vz = _vec(v, p)
+    cxx, cxy, cxz, cyx, cyy, cyz, czx, czy, czz = _mat(C, p)
+    for a in range(3):
+        i = bx + a
+        if periodic:
+            i = _wrap(i, nx)
+        ex = (a - fx) * h
+        for b in range(3):
+            j = by + b
+            ey = (b - fy) * h
+            wab = wx[a] * wy[b]
+            gab_x = dx[a] * wy[b]
+            gab_y = wx[a] * dy[b]
+            for c in range(SZ):
+                ez = (c - fz) * h if D == 3 else 0.0
+                w = wab * wz[c]
+                k = ((i * ny + j) * nz + bz + c) * NF
+                mw = m * w
+                g[k + F_M] += mw
+                g[k + F_P] += mw * (vx + cxx * ex + cxy * ey + cxz * ez)
+                g[k + F_P + 1] += mw * (vy + cyx * ex + cyy * ey + cyz * ez)
+                if D == 3:
+                    g[k + F_P + 2] += mw * (vz + czx * ex + czy * ey + czz * ez)
+                if with_force:
+                    gx = fv * gab_x * wz[c]
+                    gy = fv * gab_y * wz[c]
+                    gz = fv * wab * dz[c]
+                    g[k + F_F] += sxx * gx + sxy * gy + sxz * gz
+                    g[k + F_F + 1] += sxy * gx + syy * gy + syz * gz
+                    if D == 3:
+                        g[k + F_F + 2] += sxz * gx + syz * gy + szz * gz
+                g[k + F_VP] += w * vp
+
+
+@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
+def p2g(P, G, prm, with_force):
+    """Scatter mass, APIC momentum m(v + C(x_i − x_p)), internal force −Σ V σ·∇w and Σ w V p.
+
+    Slabs of one colour (even, then odd) scatter concurrently, each its points in index order:
+    every node receives its contributions in the same order on any number of threads."""
+    g = G.nodes.reshape(G.nodes.size)
+    g[:] = 0.0
+    ns = G.slab_start.shape[0] - 1
+    ny = G.nodes.shape[1]
+    nz = G.nodes.shape[2]
+    nt = G.bounds.shape[0] - 1
+    x, v, C, mass, vol0, J, sig, pres = P.x, P.v, P.C, P.mass, P.vol0, P.J, P.sig, P.diag[0]
+    order, bounds, slab_start = G.order, G.bounds, G.slab_start
+    for colour in range(2):
+        nc = (ns - colour + 1) // 2
+        _balance(slab_start, colour, nc, bounds)
+        for t in prange(nt):
+            for k in range(bounds[t], bounds[t + 1]):
+                s = colour + 2 * k
+                for q in range(slab_start[s], slab_start[s + 1]):
+                    _scatter_point(order[q], x, v, C, mass, vol0, J, sig, pres, g, prm, ny, nz,
+                                   with_force)  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------
+# 3. grid update and boundary planes
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _plane(kind, mu, vn, t1, t2):
+    """A wall in its own frame (vn > 0 points away from the wall into the material): no-slip,
+    symmetry (vn = 0), free slip or Coulomb friction (the tangential impulse at most μ times the
+    normal one; Bardenhagen, Brackbill & Sulsky 2000); slip and friction let the material leave."""
+    if kind == BC_NOSLIP:
+        return 0.0, 0.0, 0.0
+    if kind == BC_SYMMETRY:
+        return 0.0, t1, t2
+    if vn >= 0.0:
+        return vn, t1, t2
+    if kind == BC_SLIP:
+        return 0.0, t1, t2
+    dvn = -vn
+    at = math.sqrt(t1 * t1 + t2 * t2)
+    if at <= mu * dvn:
+        return 0.0, 0.0, 0.0
+    s = 1.0 - mu * dvn / at
+    return 0.0, t1 * s, t2 * s
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def apply_planes(prm, xn, yn, zn, vx, vy, vz):
+    """The velocity of the node at (xn, yn, zn) after the boundary planes (nodes at and beyond a
+    plane): the base y = base_y, the walls x = xlo, xhi (non-periodic x), z = zlo, zhi (3-D)."""
+    pr = prm[0]
+    tol = 1e-9 * pr.h
+    if pr.base_kind != BC_OPEN and yn <= pr.base_y + tol:
+        vy, vx, vz = _plane(pr.base_kind, pr.base_mu, vy, vx, vz)
+    if pr.periodic_x == 0:
+        if pr.xlo_kind != BC_OPEN and xn <= pr.xlo + tol:
+            vx, vy, vz = _plane(pr.xlo_kind, pr.xlo_mu, vx, vy, vz)
+        if pr.xhi_kind != BC_OPEN and xn >= pr.xhi - tol:
+            nvx, vy, vz = _plane(pr.xhi_kind, pr.xhi_mu, -vx, vy, vz)
+            vx = -nvx
+    if D == 3:
+        if pr.zlo_kind != BC_OPEN and zn <= pr.zlo + tol:
+            vz, vx, vy = _plane(pr.zlo_kind, pr.zlo_mu, vz, vx, vy)
+        if pr.zhi_kind != BC_OPEN and zn >= pr.zhi - tol:
+            nvz, vx, vy = _plane(pr.zhi_kind, pr.zhi_mu, -vz, vx, vy)
+            vz = -nvz
+    return vx, vy, vz
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def grid_update(G, prm, dt, ramp):
+    """Nodal velocities v* = (m v + Δt (f + m g))/m, the 2-D sidewall Coulomb body force, then
+    the boundary planes, on the new and (for AFLIP) the old velocity alike."""
+    nx, ny, nz = G.nodes.shape[0], G.nodes.shape[1], G.nodes.shape[2]
+    pr = prm[0]
+    h = pr.h
+    x0 = pr.origin[0]
+    y0 = pr.origin[1]
+    z0 = pr.origin[2]
+    gx = pr.gravity[0] * ramp
+    gy = pr.gravity[1]
+    gz = pr.gravity[2]
+    sw = pr.sidewall * ramp
+    uw = pr.sidewall_speed
+    sw0 = pr.sidewall_slow * ramp if uw > 0.0 else sw
+    nodes = G.nodes  # arrays out of the records before a parallel loop (docs/architecture.md)
+    gv = G.gv
+    for i in prange(nx):
+        xn = x0 + i * h
+        for j in range(ny):
+            yn = y0 + j * h
+            for k in range(nz):
+                zn = z0 + k * h
+                nd = nodes[i, j, k]
+                out = gv[i, j, k]
+                m = nd[F_M]
+                if m <= 0.0:
+                    out[:] = 0.0
+                    continue
+                im = 1.0 / m
+                ox = nd[F_P] * im
+                oy = nd[F_P + 1] * im
+                oz = nd[F_P + 2] * im if D == 3 else 0.0
+                vx = ox + dt * (nd[F_F] * im + gx)
+                vy = oy + dt * (nd[F_F + 1] * im + gy)
+                vz = oz + dt * (nd[F_F + 2] * im + gz) if D == 3 else 0.0
+                if D == 2 and (sw > 0.0 or sw0 > 0.0) and nd[F_VP] > 0.0:
+                    vx, vy = sidewall_drag(vx, vy, sw, sw0, uw, dt, nd[F_VP], im)
+                vx, vy, vz = apply_planes(prm, xn, yn, zn, vx, vy, vz)
+                # the old velocity gets the same constraints: the FLIP increment on a
+                # constrained node is then only the physical change
+                ox, oy, oz = apply_planes(prm, xn, yn, zn, ox, oy, oz)
+                out[V_NEW] = vx
+                out[V_NEW + 1] = vy
+                out[V_OLD] = ox
+                out[V_OLD + 1] = oy
+                if D == 3:
+                    out[V_NEW + 2] = vz
+                    out[V_OLD + 2] = oz
+
+
+# ---------------------------------------------------------------------------------------------
+# 4. G2P
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def gather(xp, p, gvf, prm, ny, nz):
+    """Sums over the stencil of point p: Σ w v (new, old), B = Σ w v (x_i − x_p)ᵀ and
+    L = Σ v ⊗ ∇w, each as full 3-D tuples (row-major matrices)."""
+    pr = prm[0]
+    h = pr.h
+    ih = 1.0 / h
+    nx = pr.nodes[0]
+    periodic = pr.periodic_x != 0
+    bx, wx0, wx1, wx2, dx0, dx1, dx2, fx = bspline2_frac((xp[0, p] - pr.origin[0]) * ih)
+    by, wy0, wy1, wy2, dy0, dy1, dy2, fy = bspline2_frac((xp[1, p] - pr.origin[1]) * ih)
+    if D == 3:
+        zp = xp[2, p]
+    else:
+        zp = 0.0
+    bz, wz0, wz1, wz2, dz0, dz1, dz2, fz = _z_axis(zp, pr.origin[2], ih)
+    wx = (wx0, wx1, wx2)
+    dx = (dx0, dx1, dx2)
+    wy = (wy0, wy1, wy2)
+    dy = (dy0, dy1, dy2)
+    wz = (wz0, wz1, wz2)
+    dz = (dz0, dz1, dz2)
+    ux = uy = uz = 0.0
+    ox = oy = oz = 0.0
+    bxx = bxy = bxz = byx = byy = byz = bzx = bzy = bzz = 0.0
+    lxx = lxy = lxz = lyx = lyy = lyz = lzx = lzy = lzz = 0.0
+    for a in range(3):
+        i = bx + a
+        if periodic:
+            i = _wrap(i, nx)
+        ex = (a - fx) * h
+        for b in range(3):
+            j = by + b
+            ey = (b - fy) * h
+            wab = wx[a] * wy[b]
+            gab_x = dx[a] * wy[b] * ih
+            gab_y = wx[a] * dy[b] * ih
+            for c in range(SZ):
+                ez = (c - fz) * h if D == 3 else 0.0
+                w = wab * wz[c]
+                gx = gab_x * wz[c]
+                gy = gab_y * wz[c]
+                gz = wab * dz[c] * ih
+                k = ((i * ny + j) * nz + bz + c) * NV
+                nvx = gvf[k + V_NEW]
+                nvy = gvf[k + V_NEW + 1]
+                nvz = gvf[k + V_NEW + 2] if D == 3 else 0.0
+                ux += w * nvx
+                uy += w * nvy
+                uz += w * nvz
+                ox += w * gvf[k + V_OLD]
+                oy += w * gvf[k + V_OLD + 1]
+                if D == 3:
+                    oz += w * gvf[k + V_OLD + 2]
+                bxx += w * nvx * ex
+                bxy += w * nvx * ey
+                bxz += w * nvx * ez
+                byx += w * nvy * ex
+                byy += w * nvy * ey
+                byz += w * nvy * ez
+                bzx += w * nvz * ex
+                bzy += w * nvz * ey
+                bzz += w * nvz * ez
+                lxx += nvx * gx
+                lxy += nvx * gy
+                lxz += nvx * gz
+                lyx += nvy * gx
+                lyy += nvy * gy
+                lyz += nvy * gz
+                lzx += nvz * gx
+                lzy += nvz * gy
+                lzz += nvz * gz
+    return (ux, uy, uz, ox, oy, oz, bxx, bxy, bxz, byx, byy, byz, bzx, bzy, bzz,
+            lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def det_update(J, dt, lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz):
+    """J det(I + Δt L)."""
+    a = 1.0 + dt * lxx
+    e = 1.0 + dt * lyy
+    i = 1.0 + dt * lzz
+    b = dt * lxy
+    c = dt * lxz
+    d = dt * lyx
+    f = dt * lyz
+    g = dt * lzx
+    hh = dt * lzy
+    return J * (a * (e * i - f * hh) - b * (d * i - f * g) + c * (d * hh - e * g))
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _inside(prm, x, y, z, ih):
+    """True if a point at (x, y, z) has its whole stencil inside the grid."""
+    pr = prm[0]
+    xi = (y - pr.origin[1]) * ih
+    if not (xi >= 0.5 and xi < pr.nodes[1] - 1.5):
+        return False
+    if pr.periodic_x == 0:
+        xi = (x - pr.origin[0]) * ih
+        if not (xi >= 0.5 and xi < pr.nodes[0] - 1.5):
+            return False
+    if D == 3:
+        xi = (z - pr.origin[2]) * ih
+        if not (xi >= 0.5 and xi < pr.nodes[2] - 1.5):
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
+def g2p(P, G, prm, dt, nslabs):
+    """G2P (APIC, or AFLIP: the FLIP increment blended with α), advection, C = (4/h²) B, L, J."""
+    ny = G.gv.shape[1]
+    nz = G.gv.shape[2]
+    gvf = G.gv.reshape(G.gv.size)
+    pr = prm[0]
+    ih = 1.0 / pr.h
+    k4 = 4.0 * ih * ih
+    aflip = pr.transfer == TRANSFER_AFLIP
+    alpha = pr.flip
+    lx = pr.length_x
+    periodic = pr.periodic_x != 0
+    y0 = pr.origin[1]
+    # the arrays out of the record before the parallel loop: Numba drops writes made through
+    # a NamedTuple's fields inside prange (docs/architecture.md, "Numba pitfalls")
+    x, v, C, lg, J, flags, cursor = P.x, P.v, P.C, P.lg, P.J, P.flags, P.cursor
+    for p in prange(x.shape[1]):
+        r = gather(x, p, gvf, prm, ny, nz)
+        ux, uy, uz, ox, oy, oz = r[0], r[1], r[2], r[3], r[4], r[5]
+        if aflip:
+            v[0, p] = alpha * (v[0, p] + ux - ox) + (1.0 - alpha) * ux
+            v[1, p] = alpha * (v[1, p] + uy - oy) + (1.0 - alpha) * uy
+            if D == 3:
+                v[2, p] = alpha * (v[2, p] + uz - oz) + (1.0 - alpha) * uz
+        else:
+            v[0, p] = ux
+            v[1, p] = uy
+            if D == 3:
+                v[2, p] = uz
+        xn = x[0, p] + dt * ux
+        yn = x[1, p] + dt * uy
+        zn = x[2, p] + dt * uz if D == 3 else 0.0
+        if periodic:
+            if xn >= lx:
+                xn -= lx
+            elif xn < 0.0:
+                xn += lx
+        x[0, p] = xn
+        x[1, p] = yn
+        if D == 3:
+            x[2, p] = zn
+        for a in range(D):
+            for b in range(D):
+                C[a * D + b, p] = k4 * r[6 + 3 * a + b]
+                lg[a * D + b, p] = r[15 + 3 * a + b]
+        J[p] = det_update(J[p], dt, r[15], r[16], r[17], r[18], r[19], r[20], r[21], r[22],
+                            r[23])  # fmt: skip
+        ok = math.isfinite(xn + yn + zn) and _inside(prm, xn, yn, zn, ih)
+        flags[p] = ST_OK if ok else ST_LEFT_GRID
+        cursor[p] = slab_of(yn, y0, ih, nslabs)
+
+
+# ---------------------------------------------------------------------------------------------
+# 5. material law: Fei et al. 2016 in full tensor form
+
+
+#: 1/3
+THIRD = 1.0 / 3.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def fei_tensor(mat, L, e, J, phi, dt):
+    """Stress update of one point, Fei et al. 2016 (docs/model.md §1) in full tensor form.
+
+    ``L`` the velocity gradient (row-major 3×3), ``e`` the elastic strain (xx, yy, zz, xy, xz,
+    yz), J the volume ratio (I₁ = −ln J), φ_s. Steps: objective (Jaumann) predictor
+    ε + Δt (d + w ε − ε w); the yield cap √I₂ ≤ r_c I₁/q_φ on the deviator; the Jiang–Liu stress
+    σ^e = −p_e 1 + C √I₁ ε⁰; the dissipative σ^d = 2 η d′ with η = a d̄^b ρ_s^{b/2} p_e^{1−b/2}
+    γ̇^{b−1} (d̄ = φ_s d_s + (1 − φ_s) d_l); a bulk viscosity ζ ρ c h tr d; the gas state (no
+    stress) for I₁ ≤ 0. Returns (ε⁶, σ⁶, p_e, γ̇, I, S, c, ν)."""
+    lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz = L
+    exx, eyy, ezz, exy, exz, eyz = e
+    dxy = 0.5 * (lxy + lyx)
+    dxz = 0.5 * (lxz + lzx)
+    dyz = 0.5 * (lyz + lzy)
+    wxy = 0.5 * (lxy - lyx)
+    wxz = 0.5 * (lxz - lzx)
+    wyz = 0.5 * (lyz - lzy)
+    trd = lxx + lyy + lzz
+    t3 = trd * THIRD
+    dpxx = lxx - t3
+    dpyy = lyy - t3
+    dpzz = lzz - t3
+    gdot = fsqrt(2.0 * (dpxx * dpxx + dpyy * dpyy + dpzz * dpzz
+                        + 2.0 * (dxy * dxy + dxz * dxz + dyz * dyz)))  # fmt: skip
+    # Jaumann predictor: w ε − ε w = M + Mᵀ with M = w ε
+    mxx = wxy * exy + wxz * exz
+    myy = -wxy * exy + wyz * eyz
+    mzz = -wxz * exz - wyz * eyz
+    qxy = wxy * eyy + wxz * eyz - wxy * exx + wyz * exz
+    qxz = wxy * eyz + wxz * ezz - wxz * exx - wyz * exy
+    qyz = -wxy * exz + wyz * ezz - wxz * exy - wyz * eyy
+    exx = exx + dt * (lxx + 2.0 * mxx)
+    eyy = eyy + dt * (lyy + 2.0 * myy)
+    ezz = ezz + dt * (lzz + 2.0 * mzz)
+    exy = exy + dt * (dxy + qxy)
+    exz = exz + dt * (dxz + qxz)
+    eyz = eyz + dt * (dyz + qyz)
+    t3 = (exx + eyy + ezz) * THIRD
+    e0xx = exx - t3
+    e0yy = eyy - t3
+    e0zz = ezz - t3
+    I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz
+                + 2.0 * (exy * exy + exz * exz + eyz * eyz))  # fmt: skip
+    I1 = -flog(J)
+    cap = mat.capr * I1
+    over = I2 > cap * cap
+    s = cap / fsqrt(I2) if over else 1.0
+    e0xx *= s
+    e0yy *= s
+    e0zz *= s
+    e0xy = exy * s
+    e0xz = exz * s
+    e0yz = eyz * s
+    I2 = cap * cap if over else I2
+    third = I1 * THIRD
+    if I1 <= 0.0:
+        # gas: no contacts, no stress; the volumetric strain keeps tracking the density
+        v = -third
+        return (v, v, v, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                0.0, gdot, 0.0, 0.0, 0.0, 0.0)  # fmt: skip
+    A = mat.a
+    Cj = mat.c
+    rho_s = mat.rho_s
+    rho = mat.f * rho_s / J
+    sq = fsqrt(I1)
+    pe = 2.5 * A * I1 * sq + 0.5 * Cj * I2 / sq
+    G2 = Cj * sq
+    dbar = phi * mat.ds + (1.0 - phi) * mat.dl
+    spe = fsqrt(rho_s * pe)
+    a = mat.mu_a * mat.sdf
+    b = mat.mu_b
+    if b == 1.0:
+        eta = a * dbar * spe
+    else:
+        g = max(gdot, mat.gfloor)
+        eta = a * dbar**b * rho_s ** (0.5 * b) * pe ** (1.0 - 0.5 * b) * g ** (b - 1.0)
+    inertial = gdot * dbar * rho_s / spe if pe > 0.0 else 0.0
+    c = fsqrt(mat.cw * sq * J * mat.irho0)
+    zeta = mat.zeta * rho * c * mat.h
+    vol = zeta * trd - pe
+    sxx = G2 * e0xx + 2.0 * eta * dpxx + vol
+    syy = G2 * e0yy + 2.0 * eta * dpyy + vol
+    szz = G2 * e0zz + 2.0 * eta * dpzz + vol
+    sxy = G2 * e0xy + 2.0 * eta * dxy
+    sxz = G2 * e0xz + 2.0 * eta * dxz
+    syz = G2 * e0yz + 2.0 * eta * dyz
+    driver = int(mat.driver)
+    if driver == DRIVER_A:
+        S = eta * gdot
+    elif driver == DRIVER_B:
+        S = mat.kappa_t * rho * (gdot * dbar) ** 2
+    elif driver == DRIVER_P:
+        S = pe
+    else:
+        S = -2.0 * eta * dpyy
+    S *= mat.kappa
+    nu = (eta + zeta) * J * mat.irho0
+    return (e0xx - third, e0yy - third, e0zz - third, e0xy, e0xz, e0yz,
+            sxx, syy, szz, sxy, sxz, syz, pe, gdot, inertial, S, c, nu)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def elastic_tensor(mat, L, e, J, phi, dt):
+    """Linear (Hooke) elasticity with the Jaumann predictor: σ = λ tr ε 1 + 2 μ ε (tests)."""
+    lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz = L
+    exx, eyy, ezz, exy, exz, eyz = e
+    wxy = 0.5 * (lxy - lyx)
+    wxz = 0.5 * (lxz - lzx)
+    wyz = 0.5 * (lyz - lzy)
+    mxx = wxy * exy + wxz * exz
+    myy = -wxy * exy + wyz * eyz
+    mzz = -wxz * exz - wyz * eyz
+    qxy = wxy * eyy + wxz * eyz - wxy * exx + wyz * exz
+    qxz = wxy * eyz + wxz * ezz - wxz * exx - wyz * exy
+    qyz = -wxy * exz + wyz * ezz - wxz * exy - wyz * eyy
+    exx = exx + dt * (lxx + 2.0 * mxx)
+    eyy = eyy + dt * (lyy + 2.0 * myy)
+    ezz = ezz + dt * (lzz + 2.0 * mzz)
+    exy = exy + dt * (0.5 * (lxy + lyx) + qxy)
+    exz = exz + dt * (0.5 * (lxz + lzx) + qxz)
+    eyz = eyz + dt * (0.5 * (lyz + lzy) + qyz)
+    lam = mat.lame_lambda
+    mu = mat.mu
+    tr = exx + eyy + ezz
+    rho = mat.f * mat.rho_s / J
+    c = math.sqrt((lam + 2.0 * mu) / rho)
+    return (exx, eyy, ezz, exy, exz, eyz, lam * tr + 2.0 * mu * exx, lam * tr + 2.0 * mu * eyy,
+            lam * tr + 2.0 * mu * ezz, 2.0 * mu * exy, 2.0 * mu * exz, 2.0 * mu * eyz,
+            -tr * (lam + 2.0 * mu / 3.0), 0.0, 0.0, 0.0, c, 0.0)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def material(mat, L, e, J, phi, dt):
+    """The constitutive law chosen at set-up (``mat.kind``): the extension point for a new model
+    (docs/architecture.md): a function of (record, L, ε, J, φ_s, Δt) with this return contract."""
+    m = mat[0]
+    if m.kind == KIND_FEI2016:
+        return fei_tensor(m, L, e, J, phi, dt)
+    return elastic_tensor(m, L, e, J, phi, dt)
+
+
+@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
+def update_stress(P, mat, dt, full):
+    """The material law at every point from ``P.lg`` (L of G2P), the subcycle integrals and the
+    step check. Returns (status, first failing point or −1, max c + |v|, max ν); the failing point
+    is the first in index order (a min-reduction), independent of the thread count. The output
+    diagnostics (``diag`` rows 1–5) are written when ``full`` and for a failing point."""
+    x, v, J, eps, sig, phi, diag = P.x, P.v, P.J, P.eps, P.sig, P.phi, P.diag
+    s_int, g_int, lg, flags = P.s_int, P.g_int, P.lg, P.flags
+    n = x.shape[1]
+    smax = 0.0
+    numax = 0.0
+    bad = n
+    for p in prange(n):
+        r = material(mat, _mat(lg, p), _sym(eps, p), J[p], phi[p], dt)
+        _put_sym(eps, p, r[0], r[1], r[2], r[3], r[4], r[5])
+        _put_sym(sig, p, r[6], r[7], r[8], r[9], r[10], r[11])
+        diag[0, p] = r[12]
+        s_int[p] += r[15] * dt
+        g_int[p] += r[13] * dt
+        vx, vy, vz = _vec(v, p)
+        speed = r[16] + fsqrt(vx * vx + vy * vy + vz * vz)
+        ok = (flags[p] == ST_OK and math.isfinite(speed)
+              and math.isfinite(r[6] + r[7] + r[8] + r[9] + r[10] + r[11]) and J[p] > 0.0)  # fmt: skip
+        if full or not ok:
+            diag[1, p] = r[13]
+            diag[2, p] = r[14]
+            diag[3, p] = r[15]
+            diag[4, p] = speed
+            diag[5, p] = r[17]
+        if not ok:
+            bad = min(bad, p)
+        smax = max(smax, speed)
+        numax = max(numax, r[17])
+    if bad >= n:
+        return ST_OK, -1, smax, numax
+    ok_state = math.isfinite(diag[4, bad]) and J[bad] > 0.0
+    for a in range(D):
+        ok_state = ok_state and math.isfinite(x[a, bad])
+    for a in range(NE):
+        ok_state = ok_state and math.isfinite(sig[a, bad])
+    return (flags[bad] if ok_state else ST_NONFINITE), bad, smax, numax
+
+
+@njit(cache=True, error_model="numpy")
+def prime(P, mat):
+    """Stress, diagnostics and wave speeds of the initial state (no deformation, Δt = 0)."""
+    P.lg[:, :] = 0.0
+    P.flags[:] = ST_OK
+    s = P.s_int.copy()
+    g = P.g_int.copy()
+    update_stress(P, mat, 0.0, True)
+    P.s_int[:] = s
+    P.g_int[:] = g
+
+
+# ---------------------------------------------------------------------------------------------
+# the step
+
+
+@njit(cache=True, error_model="numpy")
+def time_step(prm, clk):
+    """Δt = min(C_cfl h / max(c + |v|, c_floor), visc h² / (2 ν_max), Δt_max)."""
+    pr = prm[0]
+    dt = pr.dt_max
+    smax = max(clk.smax, pr.c_floor)
+    if smax > 0.0:
+        dt = min(dt, pr.cfl * pr.h / smax)
+    if clk.numax > 0.0:
+        dt = min(dt, pr.visc * pr.h * pr.h / (2.0 * clk.numax))
+    return dt
+
+
+@njit(cache=True, error_model="numpy")
+def advance(P, G, prm, mat, clock, t_stop, max_steps):
+    """Advance to ``t_stop`` (exactly) or by ``max_steps`` steps. Returns (status, point, steps).
+
+    The whole step, in order (the module docstring numbers them)."""
+    clk = clock[0]
+    nslabs = G.slab_start.shape[0] - 1
+    threads = G.bounds.shape[0] - 1
+    steps = 0
+    while steps < max_steps and clk.time < t_stop:
+        t = clk.time
+        dt = time_step(prm, clk)
+        if dt < prm[0].dt_min:
+            return ST_DT_COLLAPSE, -1, steps
+        last = steps + 1 >= max_steps
+        if t + dt * 1.000001 >= t_stop:
+            dt = t_stop - t
+            last = True
+        tr = prm[0].ramp
+        ramp = min(1.0, (t + dt) / tr) if tr > 0.0 else 1.0
+
+        if steps == 0:
+            slab_index(P, prm, nslabs)  # 1. sort (G2P keeps the slabs afterwards)
+        counting_sort(P.cursor, G.slab_start, G.order, threads)
+        p2g(P, G, prm, True)  # 2. P2G
+        grid_update(G, prm, dt, ramp)  # 3. grid update, boundaries
+        g2p(P, G, prm, dt, nslabs)  # 4. G2P, advection
+        status, idx, smax, numax = update_stress(P, mat, dt, last)  # 5. material law
+
+        clk.time = t + dt
+        clk.step += 1
+        clk.dt = dt
+        clk.tseg += dt
+        clk.smax = smax
+        clk.numax = numax
+        steps += 1
+        if status != ST_OK:
+            return status, idx, steps
+    return ST_OK, -1, steps
+
+
+__all__ = ["D", "NE", "NF", "NV", "SLAB", "advance", "apply_planes", "fei_tensor", "g2p",
+           "grid_update", "p2g", "prime", "update_stress"]  # fmt: skip

@@ -1,0 +1,209 @@
+"""Scenarios of the dimension-generic engine: points, grid and records from a configuration.
+
+* ``chute``: a periodic layer of depth H on a slope θ, no-slip (or frictional) base at y = 0.
+  2-D: the sidewalls are the Coulomb body force of Jop et al. 2005. 3-D: two resolved walls at
+  z = 0 and z = W with Coulomb friction μ_w = ``boundary.sidewall_friction`` on the nodes at and
+  beyond them; with ``geometry.mirror`` only 0 ≤ z ≤ W/2 is modelled, with a symmetry plane at
+  z = W/2.
+* ``collapse``: 2-D the column L₀ × H₀ against the wall x = 0; 3-D an axisymmetric column of
+  radius r₀ = ``geometry.column_width`` and height H₀ = ``geometry.column_height`` on a rough base,
+  one quarter of it, with symmetry planes x = 0 and z = 0, in the domain [0, length]².
+
+docs/architecture.md gives the layout, docs/model.md the physics.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import Config
+from ..materials import pack_material
+from ..materials.params import M_KIND
+from ..mpm.params import TRANSFER_AFLIP, TRANSFER_APIC
+from ..scenarios.builders import GHOST, _initial_strain, gravity_vector, wave_speed_floor
+from .records import CLOCK, PARAMS, PLANE_CODES, Grid, Points, material_record
+
+
+@dataclass
+class EngineState:
+    """Everything a run of the generic engine holds: points, grid, records."""
+
+    dim: int
+    points: Points
+    grid: Grid
+    prm: np.ndarray  # PARAMS, one element
+    mp: np.ndarray  # the packed material (``mat`` is its named view)
+    clock: np.ndarray  # CLOCK, one element
+
+    @property
+    def mat(self) -> np.ndarray:
+        """The named view of ``mp`` (MATERIAL, one element)."""
+        return material_record(self.mp)
+
+    @property
+    def n(self) -> int:
+        return int(self.points.mass.shape[0])
+
+
+def lattice(lo: tuple[float, ...], hi: tuple[float, ...], spacing: float):
+    """Cell-centred lattice filling the box [lo, hi] (2 or 3 axes); returns (x (D, N), volume
+    per point). Points are ordered with y slowest, so that they come sorted by height."""
+    axes = []
+    vol = 1.0
+    for a, b in zip(lo, hi, strict=True):
+        n = max(1, round((b - a) / spacing))
+        s = (b - a) / n
+        axes.append(a + (np.arange(n) + 0.5) * s)
+        vol *= s
+    if len(axes) == 2:
+        Y, X = np.meshgrid(axes[1], axes[0], indexing="ij")
+        return np.stack([X.ravel(), Y.ravel()]), vol
+    Y, X, Z = np.meshgrid(axes[1], axes[0], axes[2], indexing="ij")
+    return np.stack([X.ravel(), Y.ravel(), Z.ravel()]), vol
+
+
+def _params(cfg: Config, dim: int, origin, nodes, periodic: bool) -> np.ndarray:
+    h = cfg.grid.cell_size
+    b = cfg.boundary
+    prm = np.zeros(1, dtype=PARAMS)  # a one-element array: compiled kernels take arrays
+    prm["dim"] = dim
+    prm["h"] = h
+    prm["origin"][:] = origin
+    prm["nodes"][:] = nodes
+    prm["periodic_x"] = 1 if periodic else 0
+    prm["length_x"] = nodes[0] * h if periodic else 0.0
+    gx, gy = gravity_vector(cfg)
+    prm["gravity"][:] = (gx, gy, 0.0)
+    prm["ramp"] = b.ramp_time
+    prm["transfer"] = {"apic": TRANSFER_APIC, "aflip": TRANSFER_AFLIP}[cfg.grid.transfer]
+    prm["flip"] = cfg.grid.flip_fraction
+    prm["cfl"] = cfg.time.cfl
+    prm["visc"] = cfg.time.viscous_number
+    prm["dt_max"] = cfg.time.dt_max
+    prm["dt_min"] = cfg.time.dt_min
+    prm["base_kind"] = PLANE_CODES[b.base]
+    prm["base_y"] = 0.0
+    prm["base_mu"] = b.base_friction
+    return prm
+
+
+def _sidewall_force(cfg: Config, prm: np.ndarray) -> None:
+    """2-D: the sidewall Coulomb body force 2 μ_w K_w / W (docs/model.md §2)."""
+    b = cfg.boundary
+    if b.sidewall_friction > 0 or b.sidewall_slip_speed > 0:
+        k = 2.0 * b.wall_normal_stress_ratio / cfg.geometry.width
+        prm["sidewall"] = k * b.sidewall_friction
+        if b.sidewall_slip_speed > 0:
+            prm["sidewall_slow"] = k * b.sidewall_friction_slow
+            prm["sidewall_speed"] = b.sidewall_slip_speed
+
+
+def _ny(top: float, h: float) -> int:
+    return int(math.ceil(top / h)) + 2 * GHOST + 1
+
+
+def _nz_walls(width: float, h: float) -> int:
+    """Nodes across [−GHOST h, width + GHOST h] (the walls lie on node planes)."""
+    return int(round(width / h)) + 2 * GHOST + 1
+
+
+def build_chute(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray]:
+    g = cfg.geometry
+    h = cfg.grid.cell_size
+    nx = round(g.length / h)
+    s = h / cfg.grid.particles_per_cell
+    ny = _ny(g.depth * (1 + g.headroom), h)
+    if dim == 2:
+        x, vol = lattice((0.0, 0.0), (nx * h, g.depth), s)
+        prm = _params(cfg, 2, (0.0, -GHOST * h, 0.0), (nx, ny, 1), True)
+        _sidewall_force(cfg, prm)
+        return x, vol, prm
+    wm = g.width / 2 if g.mirror else g.width
+    if abs(wm / h - round(wm / h)) > 1e-6 * max(1.0, wm / h):
+        raise ValueError(f"the modelled width {wm} must be a whole number of cells of {h}")
+    x, vol = lattice((0.0, 0.0, 0.0), (nx * h, g.depth, wm), s)
+    prm = _params(cfg, 3, (0.0, -GHOST * h, -GHOST * h), (nx, ny, _nz_walls(wm, h)), True)
+    mu = cfg.boundary.sidewall_friction
+    wall = PLANE_CODES["friction"] if mu > 0 else PLANE_CODES["slip"]
+    prm["zlo_kind"], prm["zlo"], prm["zlo_mu"] = wall, 0.0, mu
+    prm["zhi_kind"], prm["zhi"], prm["zhi_mu"] = (
+        (PLANE_CODES["symmetry"], wm, 0.0) if g.mirror else (wall, wm, mu)
+    )
+    return x, vol, prm
+
+
+def build_collapse(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray]:
+    g = cfg.geometry
+    h = cfg.grid.cell_size
+    s = h / cfg.grid.particles_per_cell
+    nxc = int(math.ceil(g.length / h))
+    ny = _ny(g.column_height * (1 + g.headroom), h)
+    walls = PLANE_CODES[cfg.boundary.walls]
+    if dim == 2:
+        x, vol = lattice((0.0, 0.0), (g.column_width, g.column_height), s)
+        prm = _params(cfg, 2, (-GHOST * h, -GHOST * h, 0.0), (nxc + 2 * GHOST + 1, ny, 1), False)
+        _sidewall_force(cfg, prm)
+        prm["xlo_kind"], prm["xlo"], prm["xlo_mu"] = walls, 0.0, cfg.boundary.wall_friction
+        prm["xhi_kind"], prm["xhi"], prm["xhi_mu"] = walls, nxc * h, cfg.boundary.wall_friction
+        return x, vol, prm
+    r0 = g.column_width
+    x, vol = lattice((0.0, 0.0, 0.0), (r0, g.column_height, r0), s)
+    keep = x[0] ** 2 + x[2] ** 2 <= r0 * r0
+    x = np.ascontiguousarray(x[:, keep])
+    n3 = nxc + 2 * GHOST + 1
+    prm = _params(cfg, 3, (-GHOST * h, -GHOST * h, -GHOST * h), (n3, ny, n3), False)
+    sym = PLANE_CODES["symmetry"]
+    prm["xlo_kind"], prm["xlo"] = sym, 0.0
+    prm["zlo_kind"], prm["zlo"] = sym, 0.0
+    # the far ends: open (the domain is sized so that the deposit stays inside)
+    return x, vol, prm
+
+
+BUILDERS = {"chute": build_chute, "collapse": build_collapse}
+
+
+def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
+    """The initial state of ``cfg`` in ``dim`` dimensions (geostatic, at rest)."""
+    kind = cfg.scenario.kind
+    if kind not in BUILDERS:
+        raise ValueError(f"scenario.kind = {kind!r} is not available in the generic engine")
+    x, vol, prm = BUILDERS[kind](cfg, dim)
+    n = x.shape[1]
+    mp = pack_material(cfg)
+    rho = cfg.material.solid_fraction * cfg.material.grain_density
+    top = cfg.geometry.depth if kind == "chute" else cfg.geometry.column_height
+    p_yy = rho * (-prm["gravity"][0, 1]) * (top - x[1])
+    eps4, J = _initial_strain(cfg, mp, p_yy)  # (xx, yy, xy, zz) of the 2-D builders
+    ne = 4 if dim == 2 else 6
+    eps = np.zeros((ne, n))
+    eps[0], eps[1], eps[2], eps[3] = eps4[0], eps4[1], eps4[3], eps4[2]
+    if dim == 3 and mp[M_KIND] != 0 and cfg.material.initial_state == "isotropic":
+        eps[2] = eps4[3]
+    vol0 = np.full(n, vol) / J
+    mass = rho * vol0
+    prm["c_floor"] = wave_speed_floor(cfg, mp, float(np.max(p_yy)) if n else 0.0)
+    pts = Points(
+        x=np.ascontiguousarray(x), v=np.zeros((dim, n)), C=np.zeros((dim * dim, n)),
+        mass=mass, vol0=vol0, J=np.ascontiguousarray(J, dtype=np.float64), eps=eps,
+        sig=np.zeros((ne, n)), phi=np.full(n, cfg.mixture.phi_small_initial),
+        diag=np.zeros((6, n)), s_int=np.zeros(n), g_int=np.zeros(n),
+        lg=np.zeros((dim * dim, n)), flags=np.zeros(n, dtype=np.int64),
+        cursor=np.zeros(n, dtype=np.int64),
+    )  # fmt: skip
+    nodes = tuple(int(v) for v in prm["nodes"][0])
+    from .codegen import kernels
+
+    k = kernels(dim)
+    nslabs = max(1, (nodes[1] + k.SLAB - 1) // k.SLAB)
+    grid = Grid(
+        nodes=np.zeros((*nodes, k.NF)), gv=np.zeros((*nodes, k.NV)),
+        slab_start=np.zeros(nslabs + 1, dtype=np.int64), order=np.zeros(n, dtype=np.int64),
+        bounds=np.zeros(max(1, threads) + 1, dtype=np.int64),
+    )  # fmt: skip
+    clock = np.zeros(1, dtype=CLOCK)
+    st = EngineState(dim=dim, points=pts, grid=grid, prm=prm, mp=mp, clock=clock)
+    k.prime(pts, st.mat)
+    return st
