@@ -62,6 +62,12 @@ class GeometryConfig(_Section):
     #: collapse: initial column width L0 and height H0, m.
     column_width: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 0.02
     column_height: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 0.04
+    #: 2: plane strain (x downslope, y normal to the base); 3: x downslope, y normal, z across
+    #: the channel, with resolved sidewalls at z = 0 and z = ``width`` (docs/architecture.md;
+    #: the 3-D engine runs chute and collapse, local rheology, no segregation step yet).
+    dimension: Literal[2, 3] = 2
+    #: 3-D chute: model only 0 ≤ z ≤ width/2, with a symmetry plane at mid-width.
+    mirror: bool = False
     #: empty space kept above the material for the grid, as a multiple of the initial height.
     headroom: Annotated[float, Field(ge=0.05, le=10, allow_inf_nan=False)] = 0.3
 
@@ -396,11 +402,53 @@ class Config(_Section):
                 f"scenario.solver = 'column' models an x-uniform layer: it needs scenario.kind = "
                 f"'chute'; got scenario.kind = {kind!r} (allowed with the column: 'chute')"
             )
+        if g.dimension == 3:
+            self._check_3d()
         if self.time.dt_min >= self.time.dt_max:
             raise ValueError(
                 f"time.dt_min = {self.time.dt_min} must be smaller than time.dt_max = {self.time.dt_max}"
             )
         return self
+
+    def _check_3d(self) -> None:
+        """What the 3-D engine supports today (docs/architecture.md, "Status")."""
+        g = self.geometry
+        h = self.grid.cell_size
+        need = {
+            "scenario.kind": (self.scenario.kind, ("chute", "collapse")),
+            "scenario.solver": (self.scenario.solver, ("mpm",)),
+            "material.rheology": (self.material.rheology, ("local",)),
+            "segregation.model": (self.segregation.model, ("none",)),
+            "grid.transfer": (self.grid.transfer, ("aflip", "apic")),
+        }
+        for key, (value, allowed) in need.items():
+            if value not in allowed:
+                raise ValueError(
+                    f"geometry.dimension = 3 does not support {key} = {value!r} yet; allowed: "
+                    + ", ".join(repr(a) for a in allowed)
+                )
+        if self.scenario.kind == "chute":
+            wm = g.width / 2 if g.mirror else g.width
+            n = wm / h
+            if abs(n - round(n)) > 1e-6 * max(1.0, n) or round(n) < 2:
+                raise ValueError(
+                    f"geometry.width = {g.width} (mirror = {g.mirror}) must give a whole number "
+                    f"(≥ 2) of grid.cell_size = {h} cells across the modelled width (got {n:.6g})"
+                )
+            pts = g.length * g.depth * wm / (h / self.grid.particles_per_cell) ** 3
+        else:
+            pts = 0.785 * g.column_width**2 * g.column_height / (
+                h / self.grid.particles_per_cell) ** 3  # fmt: skip
+            if g.column_width > g.length:
+                raise ValueError(
+                    f"geometry.column_width = {g.column_width} (the column radius in 3-D) must "
+                    f"not exceed geometry.length = {g.length}"
+                )
+        if pts > MAX_PARTICLES:
+            raise ValueError(
+                f"grid.cell_size = {h} gives about {pts:.3g} material points in 3-D; allowed at "
+                f"most {MAX_PARTICLES:.3g}: increase grid.cell_size or reduce the geometry"
+            )
 
     # convenience -------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

@@ -124,6 +124,15 @@ class Simulation:
     >>> sim.profiles()["velocity_x"]   # doctest: +SKIP
     """
 
+    def __new__(cls, config: Config | None = None, out_dir: str | Path | None = None):
+        """``geometry.dimension = 3`` runs on the dimension-generic engine
+        (:class:`segmpm.engine.simulation.EngineSimulation`, the same controller)."""
+        if cls is Simulation and config is not None and config.geometry.dimension == 3:
+            from .engine.simulation import EngineSimulation
+
+            return super().__new__(EngineSimulation)
+        return super().__new__(cls)
+
     def __init__(self, config: Config | None = None, out_dir: str | Path | None = None):
         self.config = config if config is not None else load_config()
         self.out_dir = Path(out_dir if out_dir is not None else self.config.output.dir)

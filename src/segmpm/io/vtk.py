@@ -26,8 +26,6 @@ class VTKSeries:
         from ..analysis.profiles import point_fluidity
 
         mu, g = point_fluidity(st, nonlocal_)
-        name = f"particles_{len(self.entries):04d}.vtu"
-        n = st.n
         data = {
             "velocity_x": np.ascontiguousarray(st.v[0]),
             "velocity_y": np.ascontiguousarray(st.v[1]),
@@ -42,6 +40,13 @@ class VTKSeries:
             "stress_ratio": np.ascontiguousarray(mu),
             "fluidity": np.ascontiguousarray(g),
         }
+        return self.add_points(time, st.x[0], st.x[1], np.zeros(st.n), data)
+
+    def add_points(self, time: float, x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                   data: dict[str, np.ndarray]) -> Path:  # fmt: skip
+        """Write a snapshot of points at (x, y, z) with the point ``data`` at ``time``."""
+        name = f"particles_{len(self.entries):04d}.vtu"
+        data = {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in data.items()}
         target = self.folder / name
 
         def _write(tmp: Path) -> None:
@@ -50,8 +55,9 @@ class VTKSeries:
             base = str(tmp) + ".evtk"
             written = base + ".vtu"
             try:
-                pointsToVTK(base, np.ascontiguousarray(st.x[0]), np.ascontiguousarray(st.x[1]),
-                            np.zeros(n), data=data)  # fmt: skip
+                pointsToVTK(base, np.ascontiguousarray(x, dtype=np.float64),
+                            np.ascontiguousarray(y, dtype=np.float64),
+                            np.ascontiguousarray(z, dtype=np.float64), data=data)  # fmt: skip
                 os.replace(written, tmp)
             finally:
                 remove_quietly(written)
