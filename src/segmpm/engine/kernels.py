@@ -10,8 +10,10 @@ once, in full 3-D tensor form; 2-D plane strain is the special case with no z ve
 Order of a step (:func:`advance`, docs/architecture.md):
 
 1. sort the points into slabs of ``SLAB`` cell layers in y (P2G without atomics, deterministic);
-2. P2G: mass, APIC momentum, internal force −Σ V σ ∇w, Σ w V p;
+2. P2G: mass, APIC momentum, internal force −Σ V σ ∇w, Σ w V p; the sums of the nodes behind
+   a wall folded onto their mirror nodes (image nodes);
 3. grid update: v* = (m v + Δt (f + m g))/m, the 2-D sidewall body force, the boundary planes;
+   and the image nodes' velocities from their mirrors;
 4. G2P: APIC/AFLIP velocity, affine matrix C, velocity gradient L, advection, J;
 5. material law (Fei et al. 2016, Jiang–Liu elasticity + yield cap + μ(I)) and the step check;
 6. (every segregation subcycle) the concentration step — not in the generic engine yet.
@@ -28,7 +30,7 @@ from numba import njit, prange
 
 from segmpm import _llvm_options  # noqa: F401  (before any kernel compiles)
 from segmpm._fmath import flog, fsqrt
-from segmpm.engine.records import BC_NOSLIP, BC_OPEN, BC_SLIP, BC_SYMMETRY
+from segmpm.engine.records import BC_FRICTION, BC_NOSLIP, BC_OPEN, BC_SLIP, BC_SYMMETRY
 from segmpm.materials.params import DRIVER_A, DRIVER_B, DRIVER_P, KIND_FEI2016
 from segmpm.mpm.boundary import sidewall_drag
 from segmpm.mpm.params import (
@@ -230,6 +232,141 @@ def p2g(P, G, prm, with_force):
                 for q in range(slab_start[s], slab_start[s + 1]):
                     _scatter_point(order[q], x, v, C, mass, vol0, J, sig, pres, g, prm, ny, nz,
                                    with_force)  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------
+# 2b. image nodes behind walls that lie on a node plane
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _plane_node(coord, origin, h, n):
+    """Index of the node plane at ``coord`` if it is one (not the first or last), else −1."""
+    r = (coord - origin) / h
+    k = int(math.floor(r + 0.5))
+    if abs(r - k) > 1e-6 or k < 1 or k > n - 2:
+        return -1
+    return k
+
+
+@njit(cache=True, error_model="numpy")
+def image_planes(prm):
+    """The walls that get image nodes, rows (axis, node index of the plane, side −1 below /
+    +1 above, 1 if no-slip): the base, then x = xlo, xhi (non-periodic), then z = zlo, zhi (3-D).
+    Behind a no-slip wall the velocity is extended oddly (it vanishes on the wall); behind a
+    slip or symmetry plane the tangential velocity evenly and the normal one oddly (the mirror
+    image of the material). A Coulomb wall gets none: its friction is bounded by the normal
+    impulse of the wall nodes, and an image would carry part of the normal reaction past them
+    (tests/test_engine.py, the sliding block). Only with ``prm.images``."""
+    pr = prm[0]
+    out = np.full((5, 4), -1, dtype=np.int64)
+    if pr.images == 0:
+        return out[:0]
+    h = pr.h
+    r = 0
+    kinds = (pr.base_kind, pr.xlo_kind, pr.xhi_kind, pr.zlo_kind, pr.zhi_kind)
+    where = (pr.base_y, pr.xlo, pr.xhi, pr.zlo, pr.zhi)
+    axes = (1, 0, 0, 2, 2)
+    sides = (-1, -1, 1, -1, 1)
+    for q in range(5):
+        a = axes[q]
+        if kinds[q] == BC_OPEN or kinds[q] == BC_FRICTION:
+            continue
+        if (a == 0 and pr.periodic_x != 0) or (a == 2 and D != 3):
+            continue
+        k = _plane_node(where[q], pr.origin[a], h, pr.nodes[a])
+        if k < 0:
+            continue
+        out[r, 0] = a
+        out[r, 1] = k
+        out[r, 2] = sides[q]
+        out[r, 3] = 1 if kinds[q] == BC_NOSLIP else 0
+        r += 1
+    return out[:r]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _mirror_index(i, j, k, axis, kw, side):
+    """The mirror of node (i, j, k) across the plane ``kw`` of ``axis``, or −1 if the node is
+    not behind the plane (``side`` −1: behind means below)."""
+    c = i if axis == 0 else (j if axis == 1 else k)
+    if (side < 0 and c >= kw) or (side > 0 and c <= kw):
+        return -1
+    return 2 * kw - c
+
+
+@njit(cache=True, error_model="numpy")
+def fold_images(G, planes, prm, ramp):
+    """The P2G sums of a node behind a wall folded onto its mirror node (mass +, each momentum
+    and force component with the parity of the velocity's extension; docs/model.md, "No-slip
+    walls"), so that the Galerkin system is that of the extended velocity field. ``ramp``
+    scales the tangential gravity as in the grid update."""
+    nodes = G.nodes
+    nx, ny, nz = nodes.shape[0], nodes.shape[1], nodes.shape[2]
+    pr = prm[0]
+    grav = (pr.gravity[0] * ramp, pr.gravity[1], pr.gravity[2])
+    for r in range(planes.shape[0]):
+        axis, kw, side, noslip = planes[r, 0], planes[r, 1], planes[r, 2], planes[r, 3]
+        for i in range(nx):
+            for j in range(ny):
+                for k in range(nz):
+                    mi = _mirror_index(i, j, k, axis, kw, side)
+                    if mi < 0:
+                        continue
+                    im, jm, km = i, j, k
+                    if axis == 0:
+                        im = mi
+                    elif axis == 1:
+                        jm = mi
+                    else:
+                        km = mi
+                    if im < 0 or im >= nx or jm < 0 or jm >= ny or km < 0 or km >= nz:
+                        continue
+                    src = nodes[i, j, k]
+                    dst = nodes[im, jm, km]
+                    m = src[F_M]
+                    dst[F_M] += m
+                    for a in range(D):
+                        odd = noslip == 1 or a == axis
+                        if odd:
+                            # the odd image of m g on the node behind, and the m g the mirror
+                            # node gets for this mass afterwards
+                            dst[F_P + a] -= src[F_P + a]
+                            dst[F_F + a] -= src[F_F + a] + 2.0 * m * grav[a]
+                        else:
+                            dst[F_P + a] += src[F_P + a]
+                            dst[F_F + a] += src[F_F + a]
+                    dst[F_VP] += src[F_VP]
+                    src[:] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def mirror_images(G, planes):
+    """Nodal velocities behind the walls: those of their mirror nodes, with the parity of
+    ``fold_images`` (every lane)."""
+    gv = G.gv
+    nx, ny, nz = gv.shape[0], gv.shape[1], gv.shape[2]
+    for r in range(planes.shape[0]):
+        axis, kw, side, noslip = planes[r, 0], planes[r, 1], planes[r, 2], planes[r, 3]
+        for i in range(nx):
+            for j in range(ny):
+                for k in range(nz):
+                    mi = _mirror_index(i, j, k, axis, kw, side)
+                    if mi < 0:
+                        continue
+                    im, jm, km = i, j, k
+                    if axis == 0:
+                        im = mi
+                    elif axis == 1:
+                        jm = mi
+                    else:
+                        km = mi
+                    if im < 0 or im >= nx or jm < 0 or jm >= ny or km < 0 or km >= nz:
+                        im, jm, km = (kw if axis == 0 else i, kw if axis == 1 else j,
+                                      kw if axis == 2 else k)  # fmt: skip
+                    for a in range(D):
+                        sgn = -1.0 if (noslip == 1 or a == axis) else 1.0
+                        gv[i, j, k, V_NEW + a] = sgn * gv[im, jm, km, V_NEW + a]
+                        gv[i, j, k, V_OLD + a] = sgn * gv[im, jm, km, V_OLD + a]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -728,6 +865,7 @@ def advance(P, G, prm, mat, clock, t_stop, max_steps):
     clk = clock[0]
     nslabs = G.slab_start.shape[0] - 1
     threads = G.bounds.shape[0] - 1
+    planes = image_planes(prm)
     steps = 0
     while steps < max_steps and clk.time < t_stop:
         t = clk.time
@@ -745,7 +883,9 @@ def advance(P, G, prm, mat, clock, t_stop, max_steps):
             slab_index(P, prm, nslabs)  # 1. sort (G2P keeps the slabs afterwards)
         counting_sort(P.cursor, G.slab_start, G.order, threads)
         p2g(P, G, prm, True)  # 2. P2G
+        fold_images(G, planes, prm, ramp)  #    image nodes behind the walls
         grid_update(G, prm, dt, ramp)  # 3. grid update, boundaries
+        mirror_images(G, planes)
         g2p(P, G, prm, dt, nslabs)  # 4. G2P, advection
         status, idx, smax, numax = update_stress(P, mat, dt, last)  # 5. material law
 

@@ -71,6 +71,7 @@ PARAMS = np.dtype(
         ("dt_max", "f8"),
         ("dt_min", "f8"),
         ("c_floor", "f8"),  # floor on the wave speed of the time step, m/s
+        ("images", "i8"),  # 1: image nodes behind walls on node planes (boundary.wall_images)
         # 2-D only: the sidewall Coulomb body force 2 μ_w K_w / W (and its slow value, u_w)
         ("sidewall", "f8"),
         ("sidewall_slow", "f8"),

@@ -87,6 +87,7 @@ def _params(cfg: Config, dim: int, origin, nodes, periodic: bool) -> np.ndarray:
     prm["base_kind"] = PLANE_CODES[b.base]
     prm["base_y"] = 0.0
     prm["base_mu"] = b.base_friction
+    prm["images"] = 1 if b.wall_images else 0
     return prm
 
 

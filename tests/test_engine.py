@@ -1,0 +1,251 @@
+"""The dimension-generic engine (segmpm.engine): code generation, the full-tensor material law
+against its NumPy reference and against rotations, P2G against a NumPy reference, the 3-D chute
+with frictionless walls against plane strain, resolved Coulomb walls against the sliding-block
+closed form, thread independence and resume in 3-D."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from segmpm.config import ConfigError, load_config
+from segmpm.engine import codegen
+from segmpm.engine.codegen import kernels
+from segmpm.engine.records import PLANE_CODES
+from segmpm.engine.reference import fei_tensor_np, mat_to_sym, p2g_np, sym_to_mat
+from segmpm.engine.setup import build
+
+LOCAL3D = [
+    "material.rheology='local'",
+    "segregation.model='none'",
+    "geometry.dimension=3",
+    "grid.cell_size=0.001",
+    "geometry.length=0.002",
+    "output.fields=false",
+    "output.figures=false",
+    "output.progress=false",
+]
+
+
+def _cfg(extra=(), preset="chute_seed"):
+    return load_config(None, [*LOCAL3D, *extra], preset=preset)
+
+
+def test_codegen_writes_one_file_per_dimension_and_keeps_it():
+    k3 = kernels(3)
+    k2 = kernels(2)
+    assert (k2.D, k2.NE, k2.SZ, k3.D, k3.NE, k3.SZ) == (2, 4, 1, 3, 6, 3)
+    path = codegen.generated_dir() / "kernels_d3.py"
+    text = path.read_text()
+    assert "\nD = 3\n" in text and "\nD = 2\n" not in text
+    stamp = path.stat().st_mtime_ns
+    codegen._write_if_changed(path, codegen.render(3))  # unchanged text: not rewritten
+    assert path.stat().st_mtime_ns == stamp
+    with pytest.raises(ValueError):
+        codegen.render(4)
+
+
+def _random_state(rng, n, dim):
+    L = rng.normal(scale=5.0, size=(n, 3, 3))
+    if dim == 2:
+        L[:, 2, :] = 0.0
+        L[:, :, 2] = 0.0
+    e = mat_to_sym(sym_to_mat(rng.normal(scale=2e-4, size=(n, 6))))
+    e[:, :3] -= 2e-3  # compressed
+    if dim == 2:
+        e[:, 4:] = 0.0
+    J = np.exp(-rng.uniform(5e-4, 5e-3, size=n))
+    phi = rng.uniform(0, 1, size=n)
+    return L, e, J, phi
+
+
+@pytest.mark.parametrize("driver", ["A", "B", "C"])
+@pytest.mark.parametrize("b", [1.0, 0.7])
+def test_tensor_law_matches_numpy_reference(driver, b):
+    cfg = _cfg([f"segregation.driver='{driver}'", f"material.b={b}"])
+    st = build(cfg, 3)
+    k = kernels(3)
+    rng = np.random.default_rng(3)
+    L, e, J, phi = _random_state(rng, 64, 3)
+    J[:4] = np.exp(1e-3)  # gas
+    dt = 1e-4
+    ref = fei_tensor_np(st.mat[0], L, e, J, phi, dt)
+    for p in range(64):
+        r = np.array(k.material(st.mat, tuple(L[p].ravel()), tuple(e[p]), J[p], phi[p], dt))
+        np.testing.assert_allclose(r[0:6], ref["eps"][p], rtol=1e-10, atol=1e-15)
+        scale = max(1.0, np.abs(ref["sig"][p]).max())
+        np.testing.assert_allclose(r[6:12], ref["sig"][p], rtol=1e-10, atol=1e-12 * scale)
+        names = ("pe", "gdot", "inertial", "S", "c", "nu")
+        for q, name in enumerate(names):
+            np.testing.assert_allclose(r[12 + q], ref[name][p], rtol=1e-9, atol=1e-14,
+                                       err_msg=name)  # fmt: skip
+
+
+def test_tensor_law_is_objective():
+    """σ(Q L Qᵀ, Q ε Qᵀ) = Q σ(L, ε) Qᵀ for a rotation Q: the out-of-plane terms (xz, yz) that
+    plane strain never exercises are checked against the in-plane ones."""
+    cfg = _cfg()
+    st = build(cfg, 3)
+    k = kernels(3)
+    rng = np.random.default_rng(7)
+    L, e, J, phi = _random_state(rng, 16, 3)
+    from scipy.spatial.transform import Rotation
+
+    Q = Rotation.random(16, random_state=11).as_matrix()
+    for p in range(16):
+        r = np.array(k.material(st.mat, tuple(L[p].ravel()), tuple(e[p]), J[p], phi[p], 1e-4))
+        Lr = Q[p] @ L[p] @ Q[p].T
+        er = mat_to_sym((Q[p] @ sym_to_mat(e[p : p + 1])[0] @ Q[p].T)[None])[0]
+        rr = np.array(k.material(st.mat, tuple(Lr.ravel()), tuple(er), J[p], phi[p], 1e-4))
+        sig = sym_to_mat(r[None, 6:12])[0]
+        rot = mat_to_sym((Q[p] @ sig @ Q[p].T)[None])[0]
+        np.testing.assert_allclose(rr[6:12], rot, atol=1e-9 * np.abs(sig).max())
+        np.testing.assert_allclose(rr[12:], r[12:], rtol=1e-9, atol=1e-14)
+
+
+def test_plane_strain_law_matches_the_2d_reference():
+    """The 2-D specialisation of the tensor law is the seed's plane-strain law (materials.fei2016
+    NumPy reference, components (xx, yy, xy, zz))."""
+    from segmpm.materials.fei2016 import fei_update_np
+
+    cfg = _cfg(["geometry.dimension=2"])
+    st = build(cfg, 2)
+    k = kernels(2)
+    rng = np.random.default_rng(5)
+    L, e, J, phi = _random_state(rng, 32, 2)
+    L2 = L[:, :2, :2]
+    eps4 = np.stack([e[:, 0], e[:, 1], e[:, 3], e[:, 2]], axis=1)
+    ref = fei_update_np(st.mp, L2, 1e-4, eps4, J, phi)
+    for p in range(32):
+        r = np.array(k.material(st.mat, tuple(L[p].ravel()), tuple(e[p]), J[p], phi[p], 1e-4))
+        np.testing.assert_allclose(r[[0, 1, 3, 2]], ref[0][p], rtol=1e-10, atol=1e-15)
+        np.testing.assert_allclose(r[[6, 7, 9, 8]], ref[1][p], rtol=1e-10,
+                                   atol=1e-12 * np.abs(ref[1][p]).max())  # fmt: skip
+        np.testing.assert_allclose(r[12], ref[2][p], rtol=1e-10)
+        np.testing.assert_allclose(r[13], ref[3][p], rtol=1e-10, atol=1e-14)
+
+
+def test_p2g_matches_numpy_reference():
+    cfg = _cfg(["geometry.depth=0.004", "geometry.width=0.003"])
+    st = build(cfg, 3)
+    k = kernels(3)
+    P, G = st.points, st.grid
+    rng = np.random.default_rng(1)
+    n = st.n
+    P.v[:] = rng.normal(size=P.v.shape)
+    P.C[:] = rng.normal(scale=10.0, size=P.C.shape)
+    P.sig[:] = rng.normal(scale=100.0, size=P.sig.shape)
+    P.x[0] = (P.x[0] + rng.uniform(-2e-4, 2e-4, n)) % 0.002  # off the lattice, wrapping
+    k.slab_index(P, st.prm, G.slab_start.shape[0] - 1)
+    from segmpm.mpm.transfer import counting_sort
+
+    counting_sort(P.cursor, G.slab_start, G.order, 1)
+    k.p2g(P, G, st.prm, True)
+    prm = st.prm[0]
+    m, mom, f = p2g_np(P.x.T, P.v.T, P.C.T.reshape(n, 3, 3), P.mass, P.vol0 * P.J,
+                       sym_to_mat(P.sig.T), prm["h"], prm["origin"], G.nodes.shape[:3],
+                       True)  # fmt: skip
+    np.testing.assert_allclose(G.nodes[..., k.F_M], m, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(G.nodes[..., k.F_P : k.F_P + 3], mom, rtol=1e-11,
+                               atol=1e-12 * np.abs(mom).max())  # fmt: skip
+    np.testing.assert_allclose(G.nodes[..., k.F_F : k.F_F + 3], f, rtol=1e-11,
+                               atol=1e-12 * np.abs(f).max())  # fmt: skip
+
+
+def _run(st, t_end, threads=1, chunk=500):
+    import numba
+
+    k = kernels(st.dim)
+    numba.set_num_threads(threads)
+    while st.clock[0]["time"] < t_end:
+        status, idx, _ = k.advance(st.points, st.grid, st.prm, st.mat, st.clock, t_end, chunk)
+        assert status == 0, (status, idx)
+    return st
+
+
+def test_frictionless_walls_give_plane_strain():
+    """A 3-D chute between frictionless walls is z-invariant: it is the 2-D chute without the
+    sidewall force, to round-off (with the image nodes behind the walls, every node layer sees
+    the mirror-extended material, whose z stencil sums to one)."""
+    common = ["geometry.depth=0.006", "geometry.width=0.003", "boundary.sidewall_friction=0"]
+    s3 = _run(build(_cfg(common), 3), 0.03)
+    s2 = _run(build(_cfg([*common, "geometry.dimension=2"]), 2), 0.03)
+    P3, P2 = s3.points, s2.points
+    nz = 6  # points across the width (3 mm at 0.5 mm)
+    assert P3.mass.size == nz * P2.mass.size
+    u_s = np.abs(P2.v[0]).max()
+    assert u_s > 1e-3  # it flows
+    v3 = P3.v[0].reshape(-1, nz)  # lattice order: z fastest
+    np.testing.assert_allclose(v3, np.repeat(P2.v[0][:, None], nz, axis=1), atol=1e-9 * u_s)
+    assert np.abs(P3.v[2]).max() < 1e-9 * u_s
+    np.testing.assert_allclose(P3.sig[3].reshape(-1, nz)[:, 0], P2.sig[3],
+                               atol=1e-8 * np.abs(P2.sig[1]).max())  # fmt: skip
+
+
+def test_resolved_wall_coulomb_friction_sliding_block():
+    """A block pressed onto the wall z = 0 by gravity and pulled along x slides with
+    a = g (sin θ − μ cos θ) (Coulomb friction of the resolved wall)."""
+    mu, theta, g = 0.3, np.radians(40.0), 9.81
+    cfg = _cfg(["material.model='linear_elastic'", "material.youngs_modulus=2e5",
+                "material.poisson_ratio=0.3", "geometry.depth=0.004", "geometry.width=0.004",
+                f"boundary.sidewall_friction={mu}", "material.initial_state='stress_free'",
+                "time.cfl=0.3"])  # fmt: skip
+    st = build(cfg, 3)
+    prm = st.prm
+    prm["base_kind"] = PLANE_CODES["open"]
+    prm["zhi_kind"] = PLANE_CODES["open"]
+    prm["gravity"][0] = (g * np.sin(theta), 0.0, -g * np.cos(theta))
+    P = st.points  # no gravity along y, no base: the block is only pressed onto z = 0
+    _run(st, 0.02)
+    v0 = float(np.average(P.v[0], weights=P.mass))
+    t0 = st.clock[0]["time"]
+    _run(st, 0.06)
+    v1 = float(np.average(P.v[0], weights=P.mass))
+    a = (v1 - v0) / (st.clock[0]["time"] - t0)
+    expected = g * (np.sin(theta) - mu * np.cos(theta))
+    assert a == pytest.approx(expected, rel=0.03)
+
+
+def test_3d_result_does_not_depend_on_threads():
+    common = ["geometry.depth=0.008", "geometry.width=0.004"]
+    a = _run(build(_cfg(common), 3, threads=1), 0.02, threads=1)
+    b = _run(build(_cfg(common), 3, threads=2), 0.02, threads=2)
+    for name in ("x", "v", "sig", "J"):
+        np.testing.assert_array_equal(getattr(a.points, name), getattr(b.points, name))
+
+
+def test_3d_run_resumes_to_the_same_result(tmp_path):
+    from segmpm.simulation import Simulation
+
+    common = ["geometry.depth=0.006", "geometry.width=0.004", "geometry.mirror=true",
+              "output.checkpoint_interval=0.01", "output.profile_times=[0.0, 0.01, 0.02]"]  # fmt: skip
+    full = Simulation(_cfg([*common, "time.end=0.02"]), tmp_path / "full")
+    assert type(full).__name__ == "EngineSimulation"
+    assert full.run().status == "completed"
+    part = Simulation(_cfg([*common, "time.end=0.01"]), tmp_path / "part")
+    assert part.run().status == "completed"
+    cont = Simulation(_cfg([*common, "time.end=0.02"]), tmp_path / "part")
+    assert cont.run(resume=True).status == "completed"
+    np.testing.assert_array_equal(full.engine.points.v, cont.engine.points.v)
+    import xarray as xr
+
+    with xr.open_dataset(tmp_path / "full" / "cross_section.nc") as a, xr.open_dataset(
+        tmp_path / "part" / "cross_section.nc"
+    ) as b:
+        assert list(a.time.values) == list(b.time.values) == [0.0, 0.01, 0.02]
+        np.testing.assert_array_equal(a.velocity_x.values, b.velocity_x.values)
+        assert a.velocity_x.shape == (3, a.y.size, 2)  # 2 mm modelled, 1 mm cells
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("material.rheology='nonlocal'", "material.rheology"),
+        ("segregation.model='hill_tan_reduced'", "segregation.model"),
+        ("geometry.width=0.0215", "geometry.width"),
+        ("scenario.solver='column'", "scenario.solver"),
+    ],
+)
+def test_3d_unsupported_input_names_the_key(override, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        load_config(None, [*LOCAL3D, override], preset="chute_seed")
