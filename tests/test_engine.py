@@ -240,7 +240,7 @@ def test_3d_run_resumes_to_the_same_result(tmp_path):
 @pytest.mark.parametrize(
     "override, key",
     [
-        ("material.rheology='nonlocal'", "material.rheology"),
+        ("material.rheology='nonlocal', material.q_phi=0.75", "material.rheology"),
         ("segregation.model='hill_tan_reduced'", "segregation.model"),
         ("geometry.width=0.0215", "geometry.width"),
         ("scenario.solver='column'", "scenario.solver"),
@@ -248,4 +248,19 @@ def test_3d_run_resumes_to_the_same_result(tmp_path):
 )
 def test_3d_unsupported_input_names_the_key(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
-        load_config(None, [*LOCAL3D, override], preset="chute_seed")
+        load_config(None, [*LOCAL3D, *override.split(", ")], preset="chute_seed")
+
+
+def test_a_point_leaving_the_grid_stops_the_loop():
+    """A point thrown out of the top of the grid is flagged by G2P and stops the loop with
+    ST_LEFT_GRID before the next P2G (which would write outside the grid)."""
+    from segmpm.mpm.params import ST_LEFT_GRID
+
+    st = build(_cfg(["geometry.depth=0.006", "geometry.width=0.004"]), 3)
+    P = st.points
+    top = int(np.argmax(P.x[1]))
+    P.v[1, top] = 50.0  # one cell per ~20 µs: out of the 1.8 mm headroom within a few steps
+    status, idx, steps = kernels(3).advance(P, st.grid, st.prm, st.mat, st.clock, 1.0, 10_000)
+    assert (status, idx) == (ST_LEFT_GRID, top)
+    assert steps < 10_000
+    assert np.all(P.cursor >= 0)  # G2P wrote every point's slab

@@ -50,12 +50,13 @@ D = 2
 SZ = 3 if D == 3 else 1
 #: stored components of a symmetric tensor: xx, yy, zz, xy and, in 3-D, xz, yz
 NE = 6 if D == 3 else 4
-#: nodal P2G fields: mass, momentum (D), force (D), Σ w V p
+#: nodal P2G fields: mass, momentum (D), force (D) and, in 2-D, Σ w V p (the pressure integral
+#: of the sidewall body force; 3-D resolves the walls)
 F_M = 0
 F_P = 1
 F_F = 1 + D
 F_VP = 1 + 2 * D
-NF = 2 + 2 * D
+NF = 2 + 2 * D if D == 2 else 1 + 2 * D
 #: nodal velocity lanes: the updated velocity v* (D) and the old velocity m v / m (D)
 V_NEW = 0
 V_OLD = D
@@ -102,6 +103,20 @@ def _put_sym(a, p, xx, yy, zz, xy, xz, yz):
     if D == 3:
         a[4, p] = xz
         a[5, p] = yz
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _put_mat3(a, p, xx, xy, xz, yx, yy, yz, zx, zy, zz):
+    """Store a row-major 3×3 matrix as column p of a (9, N) array."""
+    a[0, p] = xx
+    a[1, p] = xy
+    a[2, p] = xz
+    a[3, p] = yx
+    a[4, p] = yy
+    a[5, p] = yz
+    a[6, p] = zx
+    a[7, p] = zy
+    a[8, p] = zz
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -186,27 +201,41 @@ def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, g, prm, ny, nz, with_fo
             j = by + b
             ey = (b - fy) * h
             wab = wx[a] * wy[b]
-            gab_x = dx[a] * wy[b]
-            gab_y = wx[a] * dy[b]
+            ga = fv * dx[a] * wy[b]
+            gb = fv * wx[a] * dy[b]
+            gc = fv * wab
+            # per column: the in-plane part of the affine velocity and of σ·∇w
+            mx = vx + cxx * ex + cxy * ey
+            my = vy + cyx * ex + cyy * ey
+            mz = vz + czx * ex + czy * ey
+            tx = sxx * ga + sxy * gb
+            ty = sxy * ga + syy * gb
+            tz = sxz * ga + syz * gb
+            k0 = ((i * ny + j) * nz + bz) * NF
             for c in range(SZ):
-                ez = (c - fz) * h if D == 3 else 0.0
-                w = wab * wz[c]
-                k = ((i * ny + j) * nz + bz + c) * NF
-                mw = m * w
+                k = k0 + c * NF
+                wc = wz[c]
+                mw = m * wab * wc
                 g[k + F_M] += mw
-                g[k + F_P] += mw * (vx + cxx * ex + cxy * ey + cxz * ez)
-                g[k + F_P + 1] += mw * (vy + cyx * ex + cyy * ey + cyz * ez)
                 if D == 3:
-                    g[k + F_P + 2] += mw * (vz + czx * ex + czy * ey + czz * ez)
+                    ez = (c - fz) * h
+                    g[k + F_P] += mw * (mx + cxz * ez)
+                    g[k + F_P + 1] += mw * (my + cyz * ez)
+                    g[k + F_P + 2] += mw * (mz + czz * ez)
+                else:
+                    g[k + F_P] += mw * mx
+                    g[k + F_P + 1] += mw * my
                 if with_force:
-                    gx = fv * gab_x * wz[c]
-                    gy = fv * gab_y * wz[c]
-                    gz = fv * wab * dz[c]
-                    g[k + F_F] += sxx * gx + sxy * gy + sxz * gz
-                    g[k + F_F + 1] += sxy * gx + syy * gy + syz * gz
                     if D == 3:
-                        g[k + F_F + 2] += sxz * gx + syz * gy + szz * gz
-                g[k + F_VP] += w * vp
+                        dc = dz[c]
+                        g[k + F_F] += wc * tx + dc * gc * sxz
+                        g[k + F_F + 1] += wc * ty + dc * gc * syz
+                        g[k + F_F + 2] += wc * tz + dc * gc * szz
+                    else:
+                        g[k + F_F] += tx
+                        g[k + F_F + 1] += ty
+                if D == 2:
+                    g[k + F_VP] += wab * vp
 
 
 @njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
@@ -221,8 +250,17 @@ def p2g(P, G, prm, with_force):
     ny = G.nodes.shape[1]
     nz = G.nodes.shape[2]
     nt = G.bounds.shape[0] - 1
-    x, v, C, mass, vol0, J, sig, pres = P.x, P.v, P.C, P.mass, P.vol0, P.J, P.sig, P.diag[0]
-    order, bounds, slab_start = G.order, G.bounds, G.slab_start
+    x = P.x
+    v = P.v
+    C = P.C
+    mass = P.mass
+    vol0 = P.vol0
+    J = P.J
+    sig = P.sig
+    pres = P.diag[0]
+    order = G.order
+    bounds = G.bounds
+    slab_start = G.slab_start
     for colour in range(2):
         nc = (ns - colour + 1) // 2
         _balance(slab_start, colour, nc, bounds)
@@ -335,7 +373,8 @@ def fold_images(G, planes, prm, ramp):
                         else:
                             dst[F_P + a] += src[F_P + a]
                             dst[F_F + a] += src[F_F + a]
-                    dst[F_VP] += src[F_VP]
+                    if D == 2:
+                        dst[F_VP] += src[F_VP]
                     src[:] = 0.0
 
 
@@ -499,6 +538,8 @@ def gather(xp, p, gvf, prm, ny, nz):
     ox = oy = oz = 0.0
     bxx = bxy = bxz = byx = byy = byz = bzx = bzy = bzz = 0.0
     lxx = lxy = lxz = lyx = lyy = lyz = lzx = lzy = lzz = 0.0
+    # w (x_i − x_p)_z along z: node c lies at (c − f_z) h
+    ez = ((0.0 - fz) * h * wz0, (1.0 - fz) * h * wz1, (2.0 - fz) * h * wz2)
     for a in range(3):
         i = bx + a
         if periodic:
@@ -507,44 +548,65 @@ def gather(xp, p, gvf, prm, ny, nz):
         for b in range(3):
             j = by + b
             ey = (b - fy) * h
+            # sums along the z column first (separable weights): Σ w_z v, Σ w_z′ v, Σ w_z e_z v
+            k = ((i * ny + j) * nz + bz) * NV
+            if D == 3:
+                cx = cy = cz = cox = coy = coz = 0.0
+                gxs = gys = gzs = 0.0
+                exs = eys = ezs = 0.0
+                for c in range(3):
+                    q = k + c * NV
+                    wc = wz[c]
+                    vx_ = gvf[q + V_NEW]
+                    vy_ = gvf[q + V_NEW + 1]
+                    vz_ = gvf[q + V_NEW + 2]
+                    cx += wc * vx_
+                    cy += wc * vy_
+                    cz += wc * vz_
+                    cox += wc * gvf[q + V_OLD]
+                    coy += wc * gvf[q + V_OLD + 1]
+                    coz += wc * gvf[q + V_OLD + 2]
+                    gxs += dz[c] * vx_
+                    gys += dz[c] * vy_
+                    gzs += dz[c] * vz_
+                    exs += ez[c] * vx_
+                    eys += ez[c] * vy_
+                    ezs += ez[c] * vz_
+            else:
+                cx = gvf[k + V_NEW]
+                cy = gvf[k + V_NEW + 1]
+                cox = gvf[k + V_OLD]
+                coy = gvf[k + V_OLD + 1]
+                cz = coz = gxs = gys = gzs = exs = eys = ezs = 0.0
             wab = wx[a] * wy[b]
-            gab_x = dx[a] * wy[b] * ih
-            gab_y = wx[a] * dy[b] * ih
-            for c in range(SZ):
-                ez = (c - fz) * h if D == 3 else 0.0
-                w = wab * wz[c]
-                gx = gab_x * wz[c]
-                gy = gab_y * wz[c]
-                gz = wab * dz[c] * ih
-                k = ((i * ny + j) * nz + bz + c) * NV
-                nvx = gvf[k + V_NEW]
-                nvy = gvf[k + V_NEW + 1]
-                nvz = gvf[k + V_NEW + 2] if D == 3 else 0.0
-                ux += w * nvx
-                uy += w * nvy
-                uz += w * nvz
-                ox += w * gvf[k + V_OLD]
-                oy += w * gvf[k + V_OLD + 1]
-                if D == 3:
-                    oz += w * gvf[k + V_OLD + 2]
-                bxx += w * nvx * ex
-                bxy += w * nvx * ey
-                bxz += w * nvx * ez
-                byx += w * nvy * ex
-                byy += w * nvy * ey
-                byz += w * nvy * ez
-                bzx += w * nvz * ex
-                bzy += w * nvz * ey
-                bzz += w * nvz * ez
-                lxx += nvx * gx
-                lxy += nvx * gy
-                lxz += nvx * gz
-                lyx += nvy * gx
-                lyy += nvy * gy
-                lyz += nvy * gz
-                lzx += nvz * gx
-                lzy += nvz * gy
-                lzz += nvz * gz
+            ga = dx[a] * wy[b] * ih
+            gb = wx[a] * dy[b] * ih
+            ux += wab * cx
+            uy += wab * cy
+            uz += wab * cz
+            ox += wab * cox
+            oy += wab * coy
+            oz += wab * coz
+            wex = wab * ex
+            wey = wab * ey
+            bxx += wex * cx
+            bxy += wey * cx
+            bxz += wab * exs
+            byx += wex * cy
+            byy += wey * cy
+            byz += wab * eys
+            bzx += wex * cz
+            bzy += wey * cz
+            bzz += wab * ezs
+            lxx += ga * cx
+            lxy += gb * cx
+            lxz += wab * ih * gxs
+            lyx += ga * cy
+            lyy += gb * cy
+            lyz += wab * ih * gys
+            lzx += ga * cz
+            lzy += gb * cz
+            lzz += wab * ih * gzs
     return (ux, uy, uz, ox, oy, oz, bxx, bxy, bxz, byx, byy, byz, bzx, bzy, bzz,
             lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz)  # fmt: skip
 
@@ -565,20 +627,15 @@ def det_update(J, dt, lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _inside(prm, x, y, z, ih):
-    """True if a point at (x, y, z) has its whole stencil inside the grid."""
-    pr = prm[0]
-    xi = (y - pr.origin[1]) * ih
-    if not (xi >= 0.5 and xi < pr.nodes[1] - 1.5):
+def _inside(xi, yi, zi, nx, ny, nz, periodic):
+    """True if a point at grid coordinates (ξ, η, ζ) = (x − x₀)/h … has its whole stencil
+    inside the grid: 0.5 ≤ ξ < n − 1.5 on every non-periodic axis."""
+    if not (yi >= 0.5 and yi < ny - 1.5):
         return False
-    if pr.periodic_x == 0:
-        xi = (x - pr.origin[0]) * ih
-        if not (xi >= 0.5 and xi < pr.nodes[0] - 1.5):
-            return False
-    if D == 3:
-        xi = (z - pr.origin[2]) * ih
-        if not (xi >= 0.5 and xi < pr.nodes[2] - 1.5):
-            return False
+    if not periodic and not (xi >= 0.5 and xi < nx - 1.5):
+        return False
+    if D == 3 and not (zi >= 0.5 and zi < nz - 1.5):
+        return False
     return True
 
 
@@ -595,10 +652,25 @@ def g2p(P, G, prm, dt, nslabs):
     alpha = pr.flip
     lx = pr.length_x
     periodic = pr.periodic_x != 0
+    # scalars out of the record before the parallel loop (a record's array fields read inside
+    # a prange body gave wrong values in the grid check: docs/architecture.md)
+    x0 = pr.origin[0]
     y0 = pr.origin[1]
+    z0 = pr.origin[2]
+    nx = pr.nodes[0]
+    ny_ = pr.nodes[1]
+    nz_ = pr.nodes[2]
     # the arrays out of the record before the parallel loop: Numba drops writes made through
     # a NamedTuple's fields inside prange (docs/architecture.md, "Numba pitfalls")
-    x, v, C, lg, J, flags, cursor = P.x, P.v, P.C, P.lg, P.J, P.flags, P.cursor
+    # one array per statement: unpacking a tuple of arrays of mixed dtypes made Numba (0.68)
+    # drop the loop's writes to the integer arrays (flags, cursor)
+    x = P.x
+    v = P.v
+    C = P.C
+    lg = P.lg
+    J = P.J
+    flags = P.flags
+    cursor = P.cursor
     for p in prange(x.shape[1]):
         r = gather(x, p, gvf, prm, ny, nz)
         ux, uy, uz, ox, oy, oz = r[0], r[1], r[2], r[3], r[4], r[5]
@@ -624,13 +696,24 @@ def g2p(P, G, prm, dt, nslabs):
         x[1, p] = yn
         if D == 3:
             x[2, p] = zn
-        for a in range(D):
-            for b in range(D):
-                C[a * D + b, p] = k4 * r[6 + 3 * a + b]
-                lg[a * D + b, p] = r[15 + 3 * a + b]
-        J[p] = det_update(J[p], dt, r[15], r[16], r[17], r[18], r[19], r[20], r[21], r[22],
-                            r[23])  # fmt: skip
-        ok = math.isfinite(xn + yn + zn) and _inside(prm, xn, yn, zn, ih)
+        bxx, bxy, bxz, byx, byy, byz, bzx, bzy, bzz = r[6:15]
+        lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz = r[15:24]
+        if D == 3:
+            _put_mat3(C, p, k4 * bxx, k4 * bxy, k4 * bxz, k4 * byx, k4 * byy, k4 * byz,
+                      k4 * bzx, k4 * bzy, k4 * bzz)  # fmt: skip
+            _put_mat3(lg, p, lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz)
+        else:
+            C[0, p] = k4 * bxx
+            C[1, p] = k4 * bxy
+            C[2, p] = k4 * byx
+            C[3, p] = k4 * byy
+            lg[0, p] = lxx
+            lg[1, p] = lxy
+            lg[2, p] = lyx
+            lg[3, p] = lyy
+        J[p] = det_update(J[p], dt, lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz)
+        ok = math.isfinite(xn + yn + zn) and _inside((xn - x0) * ih, (yn - y0) * ih,
+                                                     (zn - z0) * ih, nx, ny_, nz_, periodic)  # fmt: skip
         flags[p] = ST_OK if ok else ST_LEFT_GRID
         cursor[p] = slab_of(yn, y0, ih, nslabs)
 
@@ -791,8 +874,17 @@ def update_stress(P, mat, dt, full):
     step check. Returns (status, first failing point or −1, max c + |v|, max ν); the failing point
     is the first in index order (a min-reduction), independent of the thread count. The output
     diagnostics (``diag`` rows 1–5) are written when ``full`` and for a failing point."""
-    x, v, J, eps, sig, phi, diag = P.x, P.v, P.J, P.eps, P.sig, P.phi, P.diag
-    s_int, g_int, lg, flags = P.s_int, P.g_int, P.lg, P.flags
+    x = P.x
+    v = P.v
+    J = P.J
+    eps = P.eps
+    sig = P.sig
+    phi = P.phi
+    diag = P.diag
+    s_int = P.s_int
+    g_int = P.g_int
+    lg = P.lg
+    flags = P.flags
     n = x.shape[1]
     smax = 0.0
     numax = 0.0
