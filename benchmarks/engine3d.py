@@ -42,9 +42,9 @@ def main() -> None:
                                  f"geometry.width={2 * half}", "geometry.length=0.002"],
                           preset="chute_seed")  # fmt: skip
         st = build(cfg, 3, threads=args.threads)
-        k.advance(st.points, st.grid, st.prm, st.mat, st.clock, 1e9, 20)
+        k.advance(st.points, st.grid, st.prm, st.mat, st.clock, st.seg, 1e9, 20)
         t0 = time.perf_counter()
-        k.advance(st.points, st.grid, st.prm, st.mat, st.clock, 1e9, args.steps)
+        k.advance(st.points, st.grid, st.prm, st.mat, st.clock, st.seg, 1e9, args.steps)
         el = time.perf_counter() - t0
         rate = st.n * args.steps / el
         rows.append({"size": size, "points": st.n, "steps": args.steps, "seconds": el,

@@ -64,7 +64,7 @@ class GeometryConfig(_Section):
     column_height: Annotated[float, Field(gt=0, le=100, allow_inf_nan=False)] = 0.04
     #: 2: plane strain (x downslope, y normal to the base); 3: x downslope, y normal, z across
     #: the channel, with resolved sidewalls at z = 0 and z = ``width`` (docs/architecture.md;
-    #: the 3-D engine runs chute and collapse, local rheology, no segregation step yet).
+    #: the 3-D engine runs chute and collapse with the local rheology).
     dimension: Literal[2, 3] = 2
     #: 3-D chute: model only 0 ≤ z ≤ width/2, with a symmetry plane at mid-width.
     mirror: bool = False
@@ -418,7 +418,6 @@ class Config(_Section):
             "scenario.kind": (self.scenario.kind, ("chute", "collapse")),
             "scenario.solver": (self.scenario.solver, ("mpm",)),
             "material.rheology": (self.material.rheology, ("local",)),
-            "segregation.model": (self.segregation.model, ("none",)),
             "grid.transfer": (self.grid.transfer, ("aflip", "apic")),
         }
         for key, (value, allowed) in need.items():

@@ -16,7 +16,7 @@ Order of a step (:func:`advance`, docs/architecture.md):
    and the image nodes' velocities from their mirrors;
 4. G2P: APIC/AFLIP velocity, affine matrix C, velocity gradient L, advection, J;
 5. material law (Fei et al. 2016, Jiang–Liu elasticity + yield cap + μ(I)) and the step check;
-6. (every segregation subcycle) the concentration step — not in the generic engine yet.
+6. every segregation subcycle, the concentration step on the extra Eulerian grid.
 
 Points, grid and parameters are the named records of :mod:`segmpm.engine.records`.
 """
@@ -42,6 +42,19 @@ from segmpm.mpm.params import (
 )
 from segmpm.mpm.shape import bspline2_frac
 from segmpm.mpm.transfer import _balance, counting_sort
+from segmpm.segregation.closures import (
+    M_NONE,
+    P_D_LARGE,
+    P_D_SMALL,
+    P_DT_TARGET,
+    P_FILL_MIN,
+    P_FLUX,
+    P_MODEL,
+    P_SAFETY,
+    face_rates,
+    face_velocity_diffusivity,
+)
+from segmpm.segregation.grid import tent_weights
 
 #: the dimension of this copy (set by the code generator)
 D = 2
@@ -933,6 +946,246 @@ def prime(P, mat):
 
 
 # ---------------------------------------------------------------------------------------------
+# 6. segregation: the concentration step on the extra Eulerian grid (docs/segregation.md §2)
+
+#: scratch arrays of ``concentration_step`` (first index of ``Segregation.work``)
+(C_VOL, C_SUM_S, C_SUM_L, C_PHI, C_PHI0, C_S, C_GDOT, C_AX, C_BX, C_AY, C_BY, C_AZ, C_BZ,
+ C_THETA, C_DIV, C_ACT, N_CWORK) = range(17)  # fmt: skip
+#: cells a point's tent weights touch: 2 per axis
+NCORNER = 8 if D == 3 else 4
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _corners(px, py, pz, cgr, act, ci, cw):
+    """A point's cells ``ci`` and tent weights ``cw`` (Σ = 1), restricted to the active cells and
+    renormalised (segregation.grid.mp_weights, in D dimensions); the raw weights if none is
+    active."""
+    c = cgr[0]
+    hc = c.hc
+    i0, i1, wx0, wx1 = tent_weights(px, c.origin[0], hc, c.cells[0], c.periodic_x)
+    j0, j1, wy0, wy1 = tent_weights(py, c.origin[1], hc, c.cells[1], 0)
+    if D == 3:
+        k0, k1, wz0, wz1 = tent_weights(pz, c.origin[2], hc, c.cells[2], 0)
+    else:
+        k0, k1, wz0, wz1 = 0, 0, 1.0, 0.0
+    q = 0
+    tot = 0.0
+    for a in range(2):
+        for b in range(2):
+            for e in range(NCORNER // 4):
+                ci[q, 0] = i0 if a == 0 else i1
+                ci[q, 1] = j0 if b == 0 else j1
+                ci[q, 2] = k0 if e == 0 else k1
+                w = (wx0 if a == 0 else wx1) * (wy0 if b == 0 else wy1) * (wz0 if e == 0 else wz1)
+                cw[q] = w
+                tot += w * act[ci[q, 0], ci[q, 1], ci[q, 2]]
+                q += 1
+    if tot > 0.0:
+        for q in range(NCORNER):
+            cw[q] = cw[q] * act[ci[q, 0], ci[q, 1], ci[q, 2]] / tot
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _face(sp, w_, cell_a, cell_b, phic, sc, gc, hc, normal, flux_kind, d_s, d_l):
+    """Rates (a, b) of the face from cell a to cell b (index triples) along ``normal``."""
+    fa = phic[cell_a]
+    fb = phic[cell_b]
+    da = d_s * fa + d_l * (1.0 - fa)
+    db = d_s * fb + d_l * (1.0 - fb)
+    w, d = face_velocity_diffusivity(sp, sc[cell_a], sc[cell_b], gc[cell_a], gc[cell_b], da, db,
+                                     hc, normal)  # fmt: skip
+    return face_rates(w, d, hc, flux_kind)
+
+
+@njit(cache=True, error_model="numpy")
+def concentration_step(P, seg, t_int):
+    """Advance φ_s of the points over one subcycle t_int (seed Fig. 1 i–k), in D dimensions:
+    (i) points → cells with tent weights restricted to active cells (fill θ ≥ θ_min), (j) the
+    closure's monotone face fluxes (x, y and, in 3-D, z faces) in explicit substeps, (k) the
+    incremental bound-preserving mapping back. Conserves Σ V⁰ φ_s; keeps 0 ≤ φ_s ≤ 1. The same
+    algorithm as segregation.grid.concentration_step (2-D production engine). Returns the
+    number of substeps."""
+    sp = seg.prm
+    x = P.x
+    vol0 = P.vol0
+    phi = P.phi
+    s_int = P.s_int
+    g_int = P.g_int
+    n = x.shape[1]
+    if int(sp[P_MODEL]) == M_NONE or not (t_int > 0.0):
+        s_int[:] = 0.0
+        g_int[:] = 0.0
+        return 0
+    wk = seg.work
+    ci = seg.corner_cells
+    cw = seg.corner_weights
+    cg = seg.grid[0]
+    hc = cg.hc
+    ncx, ncy, ncz = cg.cells[0], cg.cells[1], cg.cells[2]
+    per = cg.periodic_x
+    cellvol = hc * hc * hc if D == 3 else hc * hc
+    vol, sum_s, sum_l = wk[C_VOL], wk[C_SUM_S], wk[C_SUM_L]
+    phic, phi0, sc, gc = wk[C_PHI], wk[C_PHI0], wk[C_S], wk[C_GDOT]
+    theta, div, act = wk[C_THETA], wk[C_DIV], wk[C_ACT]
+    # (i) pass 1: the raw fill decides the active cells
+    vol[...] = 0.0
+    act[...] = 1.0
+    for p in range(n):
+        _corners(x[0, p], x[1, p], x[2, p] if D == 3 else 0.0, seg.grid, act, ci, cw)
+        for q in range(NCORNER):
+            vol[ci[q, 0], ci[q, 1], ci[q, 2]] += cw[q] * vol0[p]
+    for i in range(ncx):
+        for j in range(ncy):
+            for k in range(ncz):
+                act[i, j, k] = 1.0 if vol[i, j, k] >= sp[P_FILL_MIN] * cellvol else 0.0
+    vol[...] = 0.0
+    sum_s[...] = 0.0
+    sum_l[...] = 0.0
+    sc[...] = 0.0
+    gc[...] = 0.0
+    # pass 2: the weights restricted to the active cells (the ones step (k) uses)
+    for p in range(n):
+        _corners(x[0, p], x[1, p], x[2, p] if D == 3 else 0.0, seg.grid, act, ci, cw)
+        for q in range(NCORNER):
+            c = (ci[q, 0], ci[q, 1], ci[q, 2])
+            wv = cw[q] * vol0[p]
+            vol[c] += wv
+            sum_s[c] += wv * phi[p]
+            sum_l[c] += wv * (1.0 - phi[p])
+            sc[c] += wv * s_int[p]
+            gc[c] += wv * g_int[p]
+    for i in range(ncx):
+        for j in range(ncy):
+            for k in range(ncz):
+                vc = vol[i, j, k]
+                if vc > 0.0:
+                    phic[i, j, k] = min(1.0, max(0.0, sum_s[i, j, k] / vc))
+                    sc[i, j, k] /= vc * t_int
+                    gc[i, j, k] /= vc * t_int
+                else:
+                    phic[i, j, k] = 0.0
+                phi0[i, j, k] = phic[i, j, k]
+                theta[i, j, k] = vc / cellvol
+    # (j) face rates, frozen over the subcycle: face q of cell (i, j, k) to its + neighbour
+    flux_kind = int(sp[P_FLUX])
+    d_s = sp[P_D_SMALL]
+    d_l = sp[P_D_LARGE]
+    ra = (wk[C_AX], wk[C_AY], wk[C_AZ])
+    rb = (wk[C_BX], wk[C_BY], wk[C_BZ])
+    for q in range(D):
+        ra[q][...] = 0.0
+        rb[q][...] = 0.0
+    for i in range(ncx):
+        ib = i + 1
+        if ib == ncx:
+            ib = 0 if per == 1 else -1
+        for j in range(ncy):
+            for k in range(ncz):
+                if act[i, j, k] == 0.0:
+                    continue
+                if ib >= 0 and ib != i and act[ib, j, k] > 0.0:
+                    a, b = _face(sp, 0, (i, j, k), (ib, j, k), phic, sc, gc, hc, 0, flux_kind,
+                                 d_s, d_l)  # fmt: skip
+                    ra[0][i, j, k] = a
+                    rb[0][i, j, k] = b
+                if j + 1 < ncy and act[i, j + 1, k] > 0.0:
+                    a, b = _face(sp, 0, (i, j, k), (i, j + 1, k), phic, sc, gc, hc, 1,
+                                 flux_kind, d_s, d_l)  # fmt: skip
+                    ra[1][i, j, k] = a
+                    rb[1][i, j, k] = b
+                if D == 3 and k + 1 < ncz and act[i, j, k + 1] > 0.0:
+                    a, b = _face(sp, 0, (i, j, k), (i, j, k + 1), phic, sc, gc, hc, 2,
+                                 flux_kind, d_s, d_l)  # fmt: skip
+                    ra[2][i, j, k] = a
+                    rb[2][i, j, k] = b
+    # stable substep: Σ_faces max(a, b) ≤ θ_c h_c / Δt_c
+    rate_max = 0.0
+    bad = False
+    for i in range(ncx):
+        im = i - 1
+        if im < 0:
+            im = ncx - 1 if per == 1 else -1
+        for j in range(ncy):
+            for k in range(ncz):
+                if act[i, j, k] == 0.0:
+                    continue
+                r = max(ra[0][i, j, k], rb[0][i, j, k]) + max(ra[1][i, j, k], rb[1][i, j, k])
+                if im >= 0:
+                    r += max(ra[0][im, j, k], rb[0][im, j, k])
+                if j > 0:
+                    r += max(ra[1][i, j - 1, k], rb[1][i, j - 1, k])
+                if D == 3:
+                    r += max(ra[2][i, j, k], rb[2][i, j, k])
+                    if k > 0:
+                        r += max(ra[2][i, j, k - 1], rb[2][i, j, k - 1])
+                r /= theta[i, j, k] * hc
+                if r != r:
+                    bad = True
+                elif r > rate_max:
+                    rate_max = r
+    nsub = 0
+    if bad or not math.isfinite(rate_max):
+        nsub = 1
+    elif rate_max > 0.0:
+        nsub = max(1, int(math.ceil(t_int * rate_max / sp[P_SAFETY])))
+    dt = t_int / nsub if nsub > 0 else 0.0
+    for _ in range(nsub):
+        div[...] = 0.0
+        for i in range(ncx):
+            ib = i + 1
+            if ib == ncx:
+                ib = 0 if per == 1 else -1
+            for j in range(ncy):
+                for k in range(ncz):
+                    fa = phic[i, j, k]
+                    for q in range(D):
+                        a = ra[q][i, j, k]
+                        b = rb[q][i, j, k]
+                        if a == 0.0 and b == 0.0:
+                            continue
+                        if q == 0:
+                            if ib < 0:
+                                continue
+                            c = (ib, j, k)
+                        elif q == 1:
+                            c = (i, j + 1, k)
+                        else:
+                            c = (i, j, k + 1)
+                        fb = phic[c]
+                        flux = a * fa * (1.0 - fb) - b * fb * (1.0 - fa)
+                        div[i, j, k] += flux
+                        div[c] -= flux
+        for i in range(ncx):
+            for j in range(ncy):
+                for k in range(ncz):
+                    if div[i, j, k] != 0.0:
+                        phic[i, j, k] -= dt * div[i, j, k] / (theta[i, j, k] * hc)
+    # (k) cells → points, incremental and bound-preserving
+    if nsub > 0:
+        for i in range(ncx):
+            for j in range(ncy):
+                for k in range(ncz):
+                    div[i, j, k] = phic[i, j, k] - phi0[i, j, k]
+        for p in range(n):
+            _corners(x[0, p], x[1, p], x[2, p] if D == 3 else 0.0, seg.grid, act, ci, cw)
+            f = phi[p]
+            dphi = 0.0
+            for q in range(NCORNER):
+                c = (ci[q, 0], ci[q, 1], ci[q, 2])
+                dc = div[c]
+                if dc > 0.0:
+                    if sum_l[c] > 0.0:
+                        dphi += cw[q] * dc * (1.0 - f) * vol[c] / sum_l[c]
+                elif dc < 0.0:
+                    if sum_s[c] > 0.0:
+                        dphi += cw[q] * dc * f * vol[c] / sum_s[c]
+            phi[p] = min(1.0, max(0.0, f + dphi))
+    s_int[:] = 0.0
+    g_int[:] = 0.0
+    return nsub
+
+
+# ---------------------------------------------------------------------------------------------
 # the step
 
 
@@ -950,7 +1203,7 @@ def time_step(prm, clk):
 
 
 @njit(cache=True, error_model="numpy")
-def advance(P, G, prm, mat, clock, t_stop, max_steps):
+def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
     """Advance to ``t_stop`` (exactly) or by ``max_steps`` steps. Returns (status, point, steps).
 
     The whole step, in order (the module docstring numbers them)."""
@@ -990,6 +1243,10 @@ def advance(P, G, prm, mat, clock, t_stop, max_steps):
         steps += 1
         if status != ST_OK:
             return status, idx, steps
+        if clk.tseg >= seg.prm[P_DT_TARGET] * (1.0 - 1e-12):  # 6. segregation subcycle
+            concentration_step(P, seg, clk.tseg)
+            clk.nseg += 1
+            clk.tseg = 0.0
     return ST_OK, -1, steps
 
 

@@ -96,6 +96,28 @@ PARAMS = np.dtype(
     align=True,
 )
 
+#: the extra Eulerian concentration grid (cells of side h_c, centres at origin + (i + ½) h_c)
+CONC = np.dtype(
+    [
+        ("origin", "f8", (3,)),  # corner of cell (0, 0, 0), m
+        ("hc", "f8"),  # cell size h_c, m
+        ("cells", "i8", (3,)),  # cells per axis (1 along z in 2-D)
+        ("periodic_x", "i8"),
+    ],
+    align=True,
+)
+
+
+class Segregation(NamedTuple):
+    """The segregation sub-step's grid, parameters (segregation.closures ``P_*``) and work."""
+
+    grid: np.ndarray  # CONC, one element
+    prm: np.ndarray  # the closure's parameter vector
+    work: np.ndarray  # (N_CWORK, n_x, n_y, n_z) scratch, indices C_* of the kernels
+    corner_cells: np.ndarray  # (8, 3) int64 scratch: a point's cells
+    corner_weights: np.ndarray  # (8,) scratch: their weights
+
+
 #: the scalar state carried between calls of the time loop
 CLOCK = np.dtype(
     [

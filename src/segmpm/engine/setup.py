@@ -24,7 +24,7 @@ from ..materials import pack_material
 from ..materials.params import M_KIND
 from ..mpm.params import TRANSFER_AFLIP, TRANSFER_APIC
 from ..scenarios.builders import GHOST, _initial_strain, gravity_vector, wave_speed_floor
-from .records import CLOCK, PARAMS, PLANE_CODES, Grid, Points, material_record
+from .records import CLOCK, CONC, PARAMS, PLANE_CODES, Grid, Points, Segregation, material_record
 
 
 @dataclass
@@ -37,6 +37,7 @@ class EngineState:
     prm: np.ndarray  # PARAMS, one element
     mp: np.ndarray  # the packed material (``mat`` is its named view)
     clock: np.ndarray  # CLOCK, one element
+    seg: Segregation  # the concentration grid, closure parameters and scratch
 
     @property
     def mat(self) -> np.ndarray:
@@ -166,6 +167,46 @@ def build_collapse(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray
 BUILDERS = {"chute": build_chute, "collapse": build_collapse}
 
 
+def segregation_grid(cfg: Config, prm: np.ndarray, x: np.ndarray, nwork: int) -> Segregation:
+    """The extra Eulerian grid over the MPM grid (as the 2-D production engine's,
+    scenarios.builders.attach_segregation), closed in z between the walls (3-D), with cells of
+    ``segregation.cell_size`` (default h/2) and one ghost layer on the closed sides."""
+    from ..segregation import conc_cell_size, make_conc_grid, pack_params
+
+    pr = prm[0]
+    h = float(pr["h"])
+    hc = conc_cell_size(cfg)
+    periodic = bool(pr["periodic_x"])
+    nodes = pr["nodes"]
+    if periodic:
+        x_lo, x_hi = 0.0, float(pr["length_x"])
+        n = x_hi / hc
+        if abs(n - round(n)) > 1e-6 * max(1.0, n):
+            hc = x_hi / max(1, round(n))
+    else:
+        x_lo, x_hi = pr["origin"][0] + h, pr["origin"][0] + (nodes[0] - 2) * h
+    y_lo = min(0.0, float(np.min(x[1])) if x.shape[1] else 0.0)
+    y_hi = pr["origin"][1] + (nodes[1] - 1) * h
+    g2 = make_conc_grid(x_lo, x_hi, y_lo, y_hi, hc, periodic)
+    cg = np.zeros(1, dtype=CONC)
+    cg["hc"] = g2.hc
+    if x.shape[0] == 3:
+        z_lo = pr["origin"][2] + h if pr["zlo_kind"] == 0 else pr["zlo"]
+        z_hi = pr["origin"][2] + (nodes[2] - 2) * h if pr["zhi_kind"] == 0 else pr["zhi"]
+        ncz = int(np.ceil((z_hi - z_lo) / g2.hc - 1e-9)) + 2
+        cg["origin"][0] = (g2.x0, g2.y0, z_lo - g2.hc)
+        cg["cells"][0] = (g2.ncx, g2.ncy, ncz)
+    else:
+        cg["origin"][0] = (g2.x0, g2.y0, 0.0)
+        cg["cells"][0] = (g2.ncx, g2.ncy, 1)
+    cg["periodic_x"] = g2.periodic_x
+    sp = pack_params(cfg, (pr["gravity"][0], pr["gravity"][1]))
+    cells = tuple(int(c) for c in cg["cells"][0])
+    return Segregation(grid=cg, prm=sp, work=np.zeros((nwork, *cells)),
+                       corner_cells=np.zeros((8, 3), dtype=np.int64),
+                       corner_weights=np.zeros(8))  # fmt: skip
+
+
 def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
     """The initial state of ``cfg`` in ``dim`` dimensions (geostatic, at rest)."""
     kind = cfg.scenario.kind
@@ -205,6 +246,7 @@ def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
         bounds=np.zeros(max(1, threads) + 1, dtype=np.int64),
     )  # fmt: skip
     clock = np.zeros(1, dtype=CLOCK)
-    st = EngineState(dim=dim, points=pts, grid=grid, prm=prm, mp=mp, clock=clock)
+    seg = segregation_grid(cfg, prm, x, k.N_CWORK)
+    st = EngineState(dim=dim, points=pts, grid=grid, prm=prm, mp=mp, clock=clock, seg=seg)
     k.prime(pts, st.mat)
     return st

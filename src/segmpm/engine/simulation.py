@@ -101,7 +101,7 @@ class EngineSimulation(Simulation):
         e = self.engine
         numba.set_num_threads(self.threads)
         t0 = _time.perf_counter()
-        status, idx, n = self.kernels.advance(e.points, e.grid, e.prm, e.mat, e.clock,
+        status, idx, n = self.kernels.advance(e.points, e.grid, e.prm, e.mat, e.clock, e.seg,
                                               float(t_stop), int(max_steps))  # fmt: skip
         self.wall_time += _time.perf_counter() - t0
         if status != ST_OK:

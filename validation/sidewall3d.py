@@ -1,0 +1,173 @@
+"""The sidewall question (docs/validation.md §4): is the 2-D Coulomb body force an adequate reduction
+of real sidewalls? Compares, on the seed chute (26°, 37.3 mm, walls 22 mm apart, μ_w = 0.3),
+
+* the 2-D model with the body force −(2 μ_w p / W) v/|v| (production engine),
+* the 3-D model with two resolved Coulomb walls (generic engine, mirror plane at mid-width),
+* the DEM with real flat walls (validation/dem/cases/seed: width-resolved ``diag_yz.txt``, 1 mm ×
+  1 mm cells across the channel and normal to the base, and the depth profiles),
+
+with the same local model (chute_seed, no segregation step in either continuum run). Reads the runs
+written by
+
+    segmpm run chute_seed --out validation/results/sidewall3d/body2d_h1mm <COMMON>
+    segmpm run chute_seed --out validation/results/sidewall3d/walls3d_h1mm <COMMON> \\
+        --set geometry.dimension=3 --set geometry.mirror=true
+
+with COMMON = --set material.rheology='"local"' --set segregation.model='"none"'
+--set grid.cell_size=0.001 --set geometry.length=0.002 (see the log files beside them), and writes
+validation/results/sidewall3d/summary.json and sidewall3d.png:
+
+    python validation/sidewall3d.py [--times 0.5 1 2 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import xarray as xr  # noqa: E402
+
+HERE = pathlib.Path(__file__).parent
+RES = HERE / "results" / "sidewall3d"
+DEM = HERE / "dem" / "cases" / "seed"
+Z0 = 0.003921800225806451  # DEM datum: mean top of the glued layer (reference_profiles.json)
+W = 0.022
+DT_DEM = 1e-5
+
+
+def dem_windows(path: pathlib.Path = DEM / "diag_yz.txt") -> dict[float, dict[str, np.ndarray]]:
+    """The width-resolved DEM windows: {end time of the 0.5 s window: arrays on (z_across, y)}.
+
+    LAMMPS axes: y across the channel, z normal to the base; here renamed to the continuum's
+    (z across, y normal, measured from the datum)."""
+    out: dict[float, dict[str, np.ndarray]] = {}
+    with open(path) as f:
+        lines = [ln for ln in f if not ln.startswith("#")]
+    i = 0
+    while i < len(lines):
+        step, nchunk, _ = lines[i].split()
+        rows = np.array([ln.split() for ln in lines[i + 1 : i + 1 + int(nchunk)]], dtype=float)
+        i += 1 + int(nchunk)
+        across = np.unique(rows[:, 1])
+        normal = np.unique(rows[:, 2])
+        shape = (across.size, normal.size)
+        vol = rows[:, 4].reshape(shape)
+        out[round(int(step) * DT_DEM, 6)] = {
+            "z": across, "y": normal - Z0, "vol": vol, "vol_small": rows[:, 5].reshape(shape),
+            "vx_vol": rows[:, 6].reshape(shape),
+        }  # fmt: skip
+    return out
+
+
+def dem_at(windows, t: float) -> dict[str, np.ndarray] | None:
+    """The DEM fields over [t − 0.5, t + 0.5] s (the two windows around t), or None."""
+    a, b = windows.get(round(t, 6)), windows.get(round(t + 0.5, 6))
+    if a is None or b is None:
+        return None
+    vol = a["vol"] + b["vol"]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = (a["vx_vol"] + b["vx_vol"]) / vol
+        phi = (a["vol_small"] + b["vol_small"]) / vol
+    return {"z": a["z"], "y": a["y"], "vol": vol, "u": u, "phi": phi}
+
+
+def surface_speed(y: np.ndarray, u: np.ndarray, f: np.ndarray) -> tuple[float, float]:
+    """(mean velocity over the top 4 mm of the dense layer, the top) of a depth profile; the top is
+    the highest bin with solid fraction ≥ 0.3."""
+    ok = np.isfinite(u) & np.isfinite(f) & (f >= 0.3)
+    if not ok.any():
+        return float("nan"), float("nan")
+    top = float(y[ok].max())
+    sel = ok & (y >= top - 0.004)
+    return float(np.nanmean(u[sel])), top
+
+
+def flowing_depth(y: np.ndarray, u: np.ndarray, top: float, us: float) -> float:
+    """Depth below the top where the velocity first falls below 5 % of the surface speed."""
+    ok = np.isfinite(u) & (y <= top)
+    ys, uu = y[ok][::-1], u[ok][::-1]
+    below = np.nonzero(uu < 0.05 * us)[0]
+    return float(top - ys[below[0]]) if below.size else float(top - ys[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--times", type=float, nargs="+", default=[0.5, 1.0, 2.0, 5.0])
+    args = ap.parse_args()
+    p2 = xr.open_dataset(RES / "body2d_h1mm" / "profiles.nc").load()
+    p3 = xr.open_dataset(RES / "walls3d_h1mm" / "profiles.nc").load()
+    c3 = xr.open_dataset(RES / "walls3d_h1mm" / "cross_section.nc").load()
+    ref = np.genfromtxt(HERE / "dem" / "reference_profiles_dense.csv", delimiter=",", names=True,
+                        comments="#")  # fmt: skip
+    win = dem_windows()
+    rows = []
+    times = [t for t in args.times if t in p3.time.values and t in p2.time.values]
+    fig, axes = plt.subplots(2, max(1, len(times)), figsize=(3.2 * max(1, len(times)), 6.4),
+                             squeeze=False)  # fmt: skip
+    for col, t in enumerate(times):
+        row: dict = {"time": t}
+        for name, ds in (("body_force_2d", p2), ("walls_3d", p3)):
+            y = ds.y.values
+            u = ds.velocity_x.sel(time=t).values
+            f = ds.solid_fraction.sel(time=t).values
+            us, top = surface_speed(y, u, f)
+            row[name] = {"surface_speed": us, "top": top,
+                         "flowing_depth": flowing_depth(y, u, top, us)}  # fmt: skip
+            axes[0, col].plot(u, y * 1e3, label=name.replace("_", " "))
+        sel = np.isclose(ref["time_s"], t)
+        if sel.any():
+            y, u = ref["y_m"][sel], ref["velocity_x"][sel]
+            f = ref["solid_fraction"][sel]
+            us, top = surface_speed(y, u, f)
+            row["dem"] = {"surface_speed": us, "top": top,
+                          "flowing_depth": flowing_depth(y, u, top, us)}  # fmt: skip
+            axes[0, col].plot(u, y * 1e3, "k--", label="DEM")
+        axes[0, col].set_title(f"t = {t:g} s")
+        axes[0, col].set_xlabel("u (m/s), width average")
+        axes[0, 0].set_ylabel("y (mm)")
+        # across the width: the velocity of the top 4 mm of the dense layer
+        top3 = row["walls_3d"]["top"]
+        ys = c3.y.values
+        band = (ys >= top3 - 0.004) & (ys <= top3)
+        u3z = np.nanmean(c3.velocity_x.sel(time=t).values[band], axis=0)
+        z3 = c3.z.values
+        row["walls_3d"]["surface_u_across"] = {"z": z3.tolist(), "u": u3z.tolist()}
+        row["walls_3d"]["wall_to_centre"] = float(u3z[0] / u3z[-1]) if u3z[-1] else None
+        axes[1, col].plot(z3 * 1e3, u3z, "o-", label="3-D walls")
+        axes[1, col].axhline(row["body_force_2d"]["surface_speed"], color="C0", ls=":",
+                             label="2-D body force")  # fmt: skip
+        d = dem_at(win, t)
+        if d is not None and "dem" in row:
+            topd = row["dem"]["top"]
+            bandd = (d["y"] >= topd - 0.004) & (d["y"] <= topd)
+            num = np.nansum(d["u"][:, bandd] * d["vol"][:, bandd], axis=1)
+            den = np.nansum(d["vol"][:, bandd], axis=1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ud = num / den
+            keep = (d["z"] >= 0) & (d["z"] <= W) & (den > 0)
+            zz, ud = d["z"][keep], ud[keep]
+            half = zz <= W / 2
+            row["dem"]["surface_u_across"] = {"z": zz.tolist(), "u": ud.tolist()}
+            mid = np.nanmean(ud[np.abs(zz - W / 2) <= 0.002])
+            row["dem"]["wall_to_centre"] = float(np.nanmean(ud[zz <= 0.002]) / mid)
+            axes[1, col].plot(zz[half] * 1e3, ud[half], "k--", label="DEM (half width)")
+        axes[1, col].set_xlabel("z (mm) from the wall")
+        axes[1, 0].set_ylabel("u of the top 4 mm (m/s)")
+        rows.append(row)
+        print(json.dumps({k: ({kk: vv for kk, vv in v.items() if kk != "surface_u_across"}
+                              if isinstance(v, dict) else v) for k, v in row.items()}))  # fmt: skip
+    axes[0, 0].legend(fontsize=7)
+    axes[1, 0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(RES / "sidewall3d.png", dpi=110)
+    (RES / "summary.json").write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
