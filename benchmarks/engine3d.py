@@ -1,10 +1,15 @@
 """Throughput of the 3-D coupled step (the generic engine): particle-steps per second of the
 seed chute (local rheology) at 16k, 64k and 256k points, on the threads given.
 
-    NUMBA_NUM_THREADS=2 python benchmarks/engine3d.py --threads 2 --out benchmarks/results/engine3d.json
+    NUMBA_NUM_THREADS=2 python benchmarks/engine3d.py --threads 2 --peer \
+        --out benchmarks/results/engine3d-2026-12-02.json
 
 The point count is set by the channel width (mirror plane, h = 0.5 mm, 2 points per cell and
-axis, 2 mm periodic length). Each size: a 20-step warm-up, then ``--steps`` steps timed.
+axis, 2 mm periodic length). Each size: a 20-step warm-up, then ``--repeats`` blocks of
+``--steps`` steps; the median block is reported. With ``--peer`` the 64k case is interleaved
+block by block with Taichi's 3-D MLS-MPM step in float64 on as many threads
+(``python -m segmpm.bench_taichi --dim 3 --serve``, the ``bench`` extra), so that both are timed
+in the same minutes of the machine: ``cost_ratio`` = segmpm's ns per particle-step over Taichi's.
 """
 
 from __future__ import annotations
@@ -12,6 +17,9 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import statistics
+import subprocess
+import sys
 import time
 
 import numba
@@ -31,6 +39,8 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--sizes", nargs="+", default=list(WIDTHS))
     ap.add_argument("--out", default=None)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--peer", action="store_true", help="interleave Taichi's 3-D step at 64k")
     args = ap.parse_args()
     numba.set_num_threads(args.threads)
     k = kernels(3)
@@ -43,18 +53,56 @@ def main() -> None:
                           preset="chute_seed")  # fmt: skip
         st = build(cfg, 3, threads=args.threads)
         k.advance(st.points, st.grid, st.prm, st.mat, st.clock, st.seg, 1e9, 20)
-        t0 = time.perf_counter()
-        k.advance(st.points, st.grid, st.prm, st.mat, st.clock, st.seg, 1e9, args.steps)
-        el = time.perf_counter() - t0
+        peer = None
+        if args.peer and size == "64k":
+            peer = subprocess.Popen(
+                [sys.executable, "-m", "segmpm.bench_taichi", "--dim", "3", "--serve", "--n",
+                 str(st.n), "--threads", str(args.threads), "--steps", str(args.steps)],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)  # fmt: skip
+            facts = json.loads(peer.stdout.readline())
+        ours, theirs = [], []
+        for _ in range(args.repeats):
+            t0 = time.perf_counter()
+            k.advance(st.points, st.grid, st.prm, st.mat, st.clock, st.seg, 1e9, args.steps)
+            ours.append(time.perf_counter() - t0)
+            if peer is not None:
+                peer.stdin.write("block\n")
+                peer.stdin.flush()
+                theirs.append(json.loads(peer.stdout.readline())["wall_s"])
+        el = statistics.median(ours)
         rate = st.n * args.steps / el
-        rows.append({"size": size, "points": st.n, "steps": args.steps, "seconds": el,
-                     "particle_steps_per_s": rate})  # fmt: skip
-        print(f"{size:>5}: {st.n:7d} points, {rate:.3g} particle-steps/s on {args.threads} threads")
+        row = {"size": size, "points": st.n, "steps": args.steps, "blocks_s": ours,
+               "seconds": el, "particle_steps_per_s": rate,
+               "ns_per_particle_step": el / (st.n * args.steps) * 1e9}  # fmt: skip
+        if peer is not None:
+            peer.stdin.write("quit\n")
+            peer.stdin.flush()
+            peer.wait(timeout=60)
+            tm = statistics.median(theirs)
+            row["taichi"] = {
+                **facts,
+                "blocks_s": theirs,
+                "seconds": tm,
+                "particle_steps_per_s": facts["n_points"] * args.steps / tm,
+                "ns_per_particle_step": tm / (facts["n_points"] * args.steps) * 1e9,
+            }
+            row["cost_ratio"] = row["ns_per_particle_step"] / row["taichi"]["ns_per_particle_step"]
+            print(
+                f"       Taichi 3-D MLS-MPM f64: {row['taichi']['particle_steps_per_s']:.3g} "
+                f"particle-steps/s ({facts['n_points']} points); cost ratio "
+                f"{row['cost_ratio']:.2f}"
+            )
+        rows.append(row)
+        print(
+            f"{size:>5}: {st.n:7d} points, {rate:.3g} particle-steps/s on {args.threads} threads",
+            flush=True,
+        )
     base = rows[0]["particle_steps_per_s"]
     for r in rows:
         r["cost_vs_first"] = base / r["particle_steps_per_s"]
     res = {"threads": args.threads, "machine": platform.processor() or platform.machine(),
-           "rows": rows}  # fmt: skip
+           "command": " ".join(sys.argv), "rows": rows,
+           "growth_16k_to_256k": rows[-1]["cost_vs_first"] if len(rows) > 1 else None}  # fmt: skip
     if args.out:
         with open(args.out, "w") as f:
             json.dump(res, f, indent=1)

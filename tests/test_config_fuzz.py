@@ -96,6 +96,7 @@ FIELD_KEYS = sorted(FIELDS)
 #: fields constrained jointly by the model validators; the valid strategy sets them together.
 COUPLED = {
     ("scenario", "kind"),
+    ("geometry", "dimension"),  # 3-D has its own consistency rules (tests/test_engine.py)
     ("grid", "cell_size"),
     ("grid", "particles_per_cell"),
     ("geometry", "length"),
@@ -235,6 +236,7 @@ def valid_data(draw) -> dict[str, Any]:
     ppc = draw(st.integers(1, 6))
     length = draw(st.integers(3, 40)) * h
     data.setdefault("scenario", {})["kind"] = kind
+    data.setdefault("geometry", {})["dimension"] = 2
     if kind != "chute":  # the column model is for chute layers only
         data["scenario"]["solver"] = "mpm"
     data.setdefault("grid", {}).update(cell_size=h, particles_per_cell=ppc)

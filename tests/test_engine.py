@@ -230,9 +230,10 @@ def test_3d_run_resumes_to_the_same_result(tmp_path):
     np.testing.assert_array_equal(full.engine.points.v, cont.engine.points.v)
     import xarray as xr
 
-    with xr.open_dataset(tmp_path / "full" / "cross_section.nc") as a, xr.open_dataset(
-        tmp_path / "part" / "cross_section.nc"
-    ) as b:
+    with (
+        xr.open_dataset(tmp_path / "full" / "cross_section.nc") as a,
+        xr.open_dataset(tmp_path / "part" / "cross_section.nc") as b,
+    ):
         assert list(a.time.values) == list(b.time.values) == [0.0, 0.01, 0.02]
         np.testing.assert_array_equal(a.velocity_x.values, b.velocity_x.values)
         assert a.velocity_x.shape == (3, a.y.size, 2)  # 2 mm modelled, 1 mm cells

@@ -103,8 +103,9 @@ def main() -> None:
     p2 = xr.open_dataset(RES / "body2d_h1mm" / "profiles.nc").load()
     p3 = xr.open_dataset(RES / "walls3d_h1mm" / "profiles.nc").load()
     c3 = xr.open_dataset(RES / "walls3d_h1mm" / "cross_section.nc").load()
-    ref = np.genfromtxt(HERE / "dem" / "reference_profiles_dense.csv", delimiter=",", names=True,
-                        comments="#")  # fmt: skip
+    import pandas as pd
+
+    ref = pd.read_csv(DEM / "reference_profiles_dense.csv", comment="#")
     win = dem_windows()
     rows = []
     times = [t for t in args.times if t in p3.time.values and t in p2.time.values]
@@ -120,10 +121,10 @@ def main() -> None:
             row[name] = {"surface_speed": us, "top": top,
                          "flowing_depth": flowing_depth(y, u, top, us)}  # fmt: skip
             axes[0, col].plot(u, y * 1e3, label=name.replace("_", " "))
-        sel = np.isclose(ref["time_s"], t)
+        sel = np.isclose(ref["time_s"].to_numpy(), t)
         if sel.any():
-            y, u = ref["y_m"][sel], ref["velocity_x"][sel]
-            f = ref["solid_fraction"][sel]
+            y, u = ref["y_m"][sel].to_numpy(), ref["velocity_x"][sel].to_numpy()
+            f = ref["solid_fraction"][sel].to_numpy()
             us, top = surface_speed(y, u, f)
             row["dem"] = {"surface_speed": us, "top": top,
                           "flowing_depth": flowing_depth(y, u, top, us)}  # fmt: skip

@@ -986,7 +986,7 @@ def _corners(px, py, pz, cgr, act, ci, cw):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _face(sp, w_, cell_a, cell_b, phic, sc, gc, hc, normal, flux_kind, d_s, d_l):
+def _face(sp, cell_a, cell_b, phic, sc, gc, hc, normal, flux_kind, d_s, d_l):
     """Rates (a, b) of the face from cell a to cell b (index triples) along ``normal``."""
     fa = phic[cell_a]
     fb = phic[cell_b]
@@ -1084,17 +1084,17 @@ def concentration_step(P, seg, t_int):
                 if act[i, j, k] == 0.0:
                     continue
                 if ib >= 0 and ib != i and act[ib, j, k] > 0.0:
-                    a, b = _face(sp, 0, (i, j, k), (ib, j, k), phic, sc, gc, hc, 0, flux_kind,
+                    a, b = _face(sp, (i, j, k), (ib, j, k), phic, sc, gc, hc, 0, flux_kind,
                                  d_s, d_l)  # fmt: skip
                     ra[0][i, j, k] = a
                     rb[0][i, j, k] = b
                 if j + 1 < ncy and act[i, j + 1, k] > 0.0:
-                    a, b = _face(sp, 0, (i, j, k), (i, j + 1, k), phic, sc, gc, hc, 1,
+                    a, b = _face(sp, (i, j, k), (i, j + 1, k), phic, sc, gc, hc, 1,
                                  flux_kind, d_s, d_l)  # fmt: skip
                     ra[1][i, j, k] = a
                     rb[1][i, j, k] = b
                 if D == 3 and k + 1 < ncz and act[i, j, k + 1] > 0.0:
-                    a, b = _face(sp, 0, (i, j, k), (i, j, k + 1), phic, sc, gc, hc, 2,
+                    a, b = _face(sp, (i, j, k), (i, j, k + 1), phic, sc, gc, hc, 2,
                                  flux_kind, d_s, d_l)  # fmt: skip
                     ra[2][i, j, k] = a
                     rb[2][i, j, k] = b
