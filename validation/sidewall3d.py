@@ -96,6 +96,65 @@ def flowing_depth(y: np.ndarray, u: np.ndarray, top: float, us: float) -> float:
     return float(top - ys[below[0]]) if below.size else float(top - ys[-1])
 
 
+def _phi_stats(y, phi, f, y_dem, phi_dem, top):
+    """φ_s over the top 5 mm of the dense layer, and the skill against the DEM depth profile,
+    1 − RMS(model − DEM)/RMS(0.5 − DEM), over the DEM's bins from the base to its top."""
+    ok = np.isfinite(phi) & np.isfinite(f) & (f >= 0.3)
+    sel = ok & (y >= top - 0.005)
+    model = np.interp(y_dem, y[ok], phi[ok])
+    keep = np.isfinite(phi_dem) & (y_dem >= 0)
+    rms = np.sqrt(np.mean((model[keep] - phi_dem[keep]) ** 2))
+    mixed = np.sqrt(np.mean((0.5 - phi_dem[keep]) ** 2))
+    return float(np.mean(phi[sel])), float(rms), float(1.0 - rms / mixed)
+
+
+def segregation_rows(ref, win, times) -> list[dict]:
+    """The runs with the seed's segregation step (seg_body2d_h1mm, seg_walls3d_h1mm), if there."""
+    runs = {"body_force_2d": RES / "seg_body2d_h1mm", "walls_3d": RES / "seg_walls3d_h1mm"}
+    data = {k: xr.open_dataset(d / "profiles.nc").load() for k, d in runs.items()
+            if (d / "profiles.nc").exists()}  # fmt: skip
+    cross = RES / "seg_walls3d_h1mm" / "cross_section.nc"
+    c3 = xr.open_dataset(cross).load() if cross.exists() else None
+    out = []
+    for t in times:
+        sel = np.isclose(ref["time_s"].to_numpy(), t)
+        if not sel.any():
+            continue
+        yd, pd_ = ref["y_m"][sel].to_numpy(), ref["phi_small"][sel].to_numpy()
+        fd = ref["solid_fraction"][sel].to_numpy()
+        ud = ref["velocity_x"][sel].to_numpy()
+        _, topd = surface_speed(yd, ud, fd)
+        row: dict = {"time": t}
+        seld = np.isfinite(pd_) & (yd >= topd - 0.005) & (yd <= topd)
+        row["dem"] = {"phi_top5": float(np.mean(pd_[seld]))}
+        for name, ds in data.items():
+            if t not in ds.time.values:
+                continue
+            y = ds.y.values
+            f = ds.solid_fraction.sel(time=t).values
+            _, top = surface_speed(y, ds.velocity_x.sel(time=t).values, f)
+            top5, rms, skill = _phi_stats(y, ds.phi_small.sel(time=t).values, f, yd, pd_, top)
+            row[name] = {"phi_top5": top5, "phi_rms": rms, "skill": skill}
+        if c3 is not None and t in c3.time.values and "walls_3d" in row:
+            ys = c3.y.values
+            top = float(ys[np.isfinite(c3.solid_fraction.sel(time=t).values).any(axis=1)].max())
+            band = (ys >= top - 0.005) & (ys <= top)
+            row["walls_3d"]["phi_top5_across"] = np.nanmean(
+                c3.phi_small.sel(time=t).values[band], axis=0).tolist()  # fmt: skip
+        d = dem_at(win, t)
+        if d is not None:
+            band = (d["y"] >= topd - 0.005) & (d["y"] <= topd)
+            keep = (d["z"] >= 0) & (d["z"] <= W)
+            small = np.nansum((d["phi"] * d["vol"])[:, band], axis=1)
+            vol = np.nansum(d["vol"][:, band], axis=1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                row["dem"]["phi_top5_across"] = (small / vol)[keep].tolist()
+        out.append(row)
+        print(json.dumps({k: ({kk: vv for kk, vv in v.items() if "across" not in kk}
+                              if isinstance(v, dict) else v) for k, v in row.items()}))  # fmt: skip
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--times", type=float, nargs="+", default=[0.5, 1.0, 2.0, 5.0])
@@ -163,11 +222,12 @@ def main() -> None:
         rows.append(row)
         print(json.dumps({k: ({kk: vv for kk, vv in v.items() if kk != "surface_u_across"}
                               if isinstance(v, dict) else v) for k, v in row.items()}))  # fmt: skip
+    seg = segregation_rows(ref, win, times)
     axes[0, 0].legend(fontsize=7)
     axes[1, 0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(RES / "sidewall3d.png", dpi=110)
-    (RES / "summary.json").write_text(json.dumps(rows, indent=1))
+    (RES / "summary.json").write_text(json.dumps({"flow": rows, "segregation": seg}, indent=1))
 
 
 if __name__ == "__main__":
