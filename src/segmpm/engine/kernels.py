@@ -1094,7 +1094,7 @@ def concentration_step(P, seg, t_int):
                     ra[1][i, j, k] = a
                     rb[1][i, j, k] = b
                 if D == 3 and k + 1 < ncz and act[i, j, k + 1] > 0.0:
-                    a, b = _face(sp, (i, j, k), (i, j, k + 1), phic, sc, gc, hc, 2,
+                    a, b = _face(seg.prm_z, (i, j, k), (i, j, k + 1), phic, sc, gc, hc, 0,
                                  flux_kind, d_s, d_l)  # fmt: skip
                     ra[2][i, j, k] = a
                     rb[2][i, j, k] = b

@@ -113,6 +113,7 @@ class Segregation(NamedTuple):
 
     grid: np.ndarray  # CONC, one element
     prm: np.ndarray  # the closure's parameter vector
+    prm_z: np.ndarray  # the same with no gravity in the face law: the z-faces' (3-D)
     work: np.ndarray  # (N_CWORK, n_x, n_y, n_z) scratch, indices C_* of the kernels
     corner_cells: np.ndarray  # (8, 3) int64 scratch: a point's cells
     corner_weights: np.ndarray  # (8,) scratch: their weights

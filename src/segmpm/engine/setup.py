@@ -201,8 +201,10 @@ def segregation_grid(cfg: Config, prm: np.ndarray, x: np.ndarray, nwork: int) ->
         cg["cells"][0] = (g2.ncx, g2.ncy, 1)
     cg["periodic_x"] = g2.periodic_x
     sp = pack_params(cfg, (pr["gravity"][0], pr["gravity"][1]))
+    # z-faces take the x-face law (normal 0) with a zero gravity component along them
+    sp_z = pack_params(cfg, (0.0, 0.0))
     cells = tuple(int(c) for c in cg["cells"][0])
-    return Segregation(grid=cg, prm=sp, work=np.zeros((nwork, *cells)),
+    return Segregation(grid=cg, prm=sp, prm_z=sp_z, work=np.zeros((nwork, *cells)),
                        corner_cells=np.zeros((8, 3), dtype=np.int64),
                        corner_weights=np.zeros(8))  # fmt: skip
 

@@ -247,8 +247,7 @@ def face_velocity_diffusivity(
         return w, prm[P_ETA] / prm[P_C_D]
     if model == M_HILL_TAN_FULL:
         dsdn = (s_b - s_a) / hc
-        # normal_y: 0 an x-face, 1 a y-face, 2 a z-face of the 3-D engine (no gravity along z)
-        gn = prm[P_GY] if normal_y == 1 else (prm[P_GX] if normal_y == 0 else 0.0)
+        gn = prm[P_GY] if normal_y == 1 else prm[P_GX]
         w = (prm[P_B_CS] - prm[P_B_KS]) / (prm[P_C_D] * prm[P_RHO_BULK]) * dsdn
         w -= prm[P_B_CS] / prm[P_C_D] * gn
         return w, prm[P_ETA] / prm[P_C_D]
