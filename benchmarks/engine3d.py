@@ -33,6 +33,16 @@ from segmpm.engine.setup import build
 WIDTHS = {"16k": 0.0035, "64k": 0.0135, "256k": 0.054}
 
 
+def _json_line(stream) -> dict:
+    """The next JSON line of the peer (Taichi prints its banner on stdout first)."""
+    while True:
+        line = stream.readline()
+        if not line:
+            raise RuntimeError("the Taichi peer exited early")
+        if line.lstrip().startswith("{"):
+            return json.loads(line)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=2)
@@ -59,7 +69,7 @@ def main() -> None:
                 [sys.executable, "-m", "segmpm.bench_taichi", "--dim", "3", "--serve", "--n",
                  str(st.n), "--threads", str(args.threads), "--steps", str(args.steps)],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)  # fmt: skip
-            facts = json.loads(peer.stdout.readline())
+            facts = _json_line(peer.stdout)
         ours, theirs = [], []
         for _ in range(args.repeats):
             t0 = time.perf_counter()
@@ -68,7 +78,7 @@ def main() -> None:
             if peer is not None:
                 peer.stdin.write("block\n")
                 peer.stdin.flush()
-                theirs.append(json.loads(peer.stdout.readline())["wall_s"])
+                theirs.append(_json_line(peer.stdout)["wall_s"])
         el = statistics.median(ours)
         rate = st.n * args.steps / el
         row = {"size": size, "points": st.n, "steps": args.steps, "blocks_s": ours,

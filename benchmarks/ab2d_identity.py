@@ -1,0 +1,47 @@
+"""2-D identity and throughput of a checkout against another, on the seed preset (chute_seed,
+1 s, one thread): one run per call, so that calls can be interleaved A/B/A/B.
+
+    git worktree add /tmp/wt_pre 19ee395      # the commit before the generic engine
+    for r in 1 2 3 4 5; do
+      NUMBA_NUM_THREADS=1 python benchmarks/ab2d_identity.py $PWD/src head 1.0
+      NUMBA_NUM_THREADS=1 python benchmarks/ab2d_identity.py /tmp/wt_pre/src pre 1.0
+    done
+    python -c "import numpy as np; a, b = np.load('/tmp/ab/state_pre.npz'), np.load('/tmp/ab/state_head.npz'); print(all(np.array_equal(a[k], b[k]) for k in a.files))"
+
+Each call prints a JSON line (steps, loop seconds excluding the compile) and saves the final
+state to /tmp/ab/state_<tag>.npz.
+"""
+
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+src = sys.argv[1]
+tag = sys.argv[2]
+end = float(sys.argv[3])
+sys.path.insert(0, src)
+import segmpm  # noqa: E402
+from segmpm.config import load_config  # noqa: E402
+from segmpm.simulation import Simulation  # noqa: E402
+
+os.makedirs("/tmp/ab", exist_ok=True)
+assert segmpm.__file__.startswith(src), segmpm.__file__
+cfg = load_config(
+    None, [f"time.end={end}", "output.progress=false", "grid.threads=1"], preset="chute_seed"
+)
+sim = Simulation(cfg, f"/tmp/ab/out_{tag}")
+sim.advance_to(1e-4)  # compile
+w0 = sim.wall_time
+t0 = time.perf_counter()
+sim.advance_to(end)
+el = time.perf_counter() - t0
+st = sim.state
+np.savez(f"/tmp/ab/state_{tag}.npz", x=st.x, v=st.v, sig=st.sig, phi=st.phi)
+print(
+    json.dumps(
+        {"tag": tag, "steps": sim.steps, "loop_s": sim.wall_time - w0, "wall_s": el, "n": st.n}
+    )
+)
