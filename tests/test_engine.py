@@ -331,3 +331,52 @@ def test_concentration_step_3d_conserves_and_reduces_to_2d():
     assert P3.phi.min() >= 0.0 and P3.phi.max() <= 1.0
     np.testing.assert_allclose(P3.phi.reshape(-1, nz), np.repeat(P2.phi[:, None], nz, axis=1),
                                atol=1e-12)  # fmt: skip
+
+
+def test_3d_collapse_quarter_column_is_symmetric():
+    """The quarter cylinder (symmetry planes x = 0 and z = 0) spreads alike along x and z (the
+    problem is symmetric under x ↔ z), keeps its mass, and does not cross the symmetry planes."""
+    cfg = _cfg(["scenario.kind='collapse'", "geometry.slope_deg=0", "geometry.length=0.012",
+                "geometry.column_width=0.005", "geometry.column_height=0.005",
+                "boundary.base='noslip'"])  # fmt: skip
+    st = _run(build(cfg, 3), 0.04)
+    P = st.points
+    px = float(np.sum(P.mass * P.v[0]))
+    pz = float(np.sum(P.mass * P.v[2]))
+    assert px > 1e-8  # it spreads outwards
+    assert pz == pytest.approx(px, rel=1e-6)
+    rx = float(np.sum(P.mass * P.x[0]))
+    rz = float(np.sum(P.mass * P.x[2]))
+    assert rz == pytest.approx(rx, rel=1e-8)
+    assert P.x[0].min() > 0.0 and P.x[2].min() > 0.0
+
+
+def test_3d_cli_run_writes_3d_snapshots_and_cross_sections(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    import meshio
+    import xarray as xr
+
+    out = tmp_path / "run3d"
+    args = [sys.executable, "-m", "segmpm.cli", "run", "chute_seed", "--out", str(out),
+            "--no-progress", "--set", "output.profile_times=[0.0, 0.005]", "--set",
+            "time.end=0.005", "--set", "geometry.depth=0.006", "--set", "geometry.width=0.004",
+            "--set", "geometry.mirror=true"]  # fmt: skip
+    for o in LOCAL3D:
+        if not o.startswith("output."):
+            args += ["--set", o]
+    r = subprocess.run(args, capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr
+    info = json.loads((out / "run.json").read_text())
+    assert info["status"] == "completed" and info["dimension"] == 3
+    mesh = meshio.read(out / "fields" / "particles_0001.vtu")
+    assert mesh.points.shape[0] == info["n_points"]
+    assert mesh.points[:, 2].max() > 1e-3  # the z coordinates are written
+    assert "velocity_z" in mesh.point_data
+    with xr.open_dataset(out / "cross_section.nc") as ds:
+        assert ds.velocity_x.dims == ("time", "y", "z") and ds.z.size == 2
+    with xr.open_dataset(out / "profiles.nc") as ds:
+        f = ds.solid_fraction.sel(time=0.0).values
+        assert np.nanmedian(f) == pytest.approx(0.6, rel=0.02)  # area = length × modelled width
