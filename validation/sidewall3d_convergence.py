@@ -14,7 +14,6 @@ import pathlib
 
 import numpy as np
 import xarray as xr
-
 from sidewall3d import flowing_depth, surface_speed  # noqa: I001  (same folder)
 
 RES = pathlib.Path(__file__).parent / "results" / "sidewall3d"
