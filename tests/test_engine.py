@@ -12,7 +12,7 @@ from segmpm.config import ConfigError, load_config
 from segmpm.engine import codegen
 from segmpm.engine.codegen import kernels
 from segmpm.engine.records import PLANE_CODES
-from segmpm.engine.reference import fei_tensor_np, mat_to_sym, p2g_np, sym_to_mat
+from segmpm.engine.reference import fei_tensor_np, mat_to_sym, ngf_tensor_np, p2g_np, sym_to_mat
 from segmpm.engine.setup import build
 
 LOCAL3D = [
@@ -71,7 +71,7 @@ def test_tensor_law_matches_numpy_reference(driver, b):
     dt = 1e-4
     ref = fei_tensor_np(st.mat[0], L, e, J, phi, dt)
     for p in range(64):
-        r = np.array(k.material(st.mat, tuple(L[p].ravel()), tuple(e[p]), J[p], phi[p], dt))
+        r = np.array(k.material(st.mat, tuple(L[p].ravel()), tuple(e[p]), J[p], phi[p], 0.0, dt))
         np.testing.assert_allclose(r[0:6], ref["eps"][p], rtol=1e-10, atol=1e-15)
         scale = max(1.0, np.abs(ref["sig"][p]).max())
         np.testing.assert_allclose(r[6:12], ref["sig"][p], rtol=1e-10, atol=1e-12 * scale)
@@ -93,10 +93,10 @@ def test_tensor_law_is_objective():
 
     Q = Rotation.random(16, random_state=11).as_matrix()
     for p in range(16):
-        r = np.array(k.material(st.mat, tuple(L[p].ravel()), tuple(e[p]), J[p], phi[p], 1e-4))
+        r = np.array(k.material(st.mat, tuple(L[p].ravel()), tuple(e[p]), J[p], phi[p], 0.0, 1e-4))
         Lr = Q[p] @ L[p] @ Q[p].T
         er = mat_to_sym((Q[p] @ sym_to_mat(e[p : p + 1])[0] @ Q[p].T)[None])[0]
-        rr = np.array(k.material(st.mat, tuple(Lr.ravel()), tuple(er), J[p], phi[p], 1e-4))
+        rr = np.array(k.material(st.mat, tuple(Lr.ravel()), tuple(er), J[p], phi[p], 0.0, 1e-4))
         sig = sym_to_mat(r[None, 6:12])[0]
         rot = mat_to_sym((Q[p] @ sig @ Q[p].T)[None])[0]
         np.testing.assert_allclose(rr[6:12], rot, atol=1e-9 * np.abs(sig).max())
@@ -117,7 +117,7 @@ def test_plane_strain_law_matches_the_2d_reference():
     eps4 = np.stack([e[:, 0], e[:, 1], e[:, 3], e[:, 2]], axis=1)
     ref = fei_update_np(st.mp, L2, 1e-4, eps4, J, phi)
     for p in range(32):
-        r = np.array(k.material(st.mat, tuple(L[p].ravel()), tuple(e[p]), J[p], phi[p], 1e-4))
+        r = np.array(k.material(st.mat, tuple(L[p].ravel()), tuple(e[p]), J[p], phi[p], 0.0, 1e-4))
         np.testing.assert_allclose(r[[0, 1, 3, 2]], ref[0][p], rtol=1e-10, atol=1e-15)
         np.testing.assert_allclose(r[[6, 7, 9, 8]], ref[1][p], rtol=1e-10,
                                    atol=1e-12 * np.abs(ref[1][p]).max())  # fmt: skip
@@ -216,18 +216,27 @@ def test_3d_result_does_not_depend_on_threads():
 
 
 def test_3d_run_resumes_to_the_same_result(tmp_path):
+    """The default (nonlocal, grain-calibrated) model in 3-D: an interrupted run resumes to the
+    same state, fluidity and fluidity clock included."""
     from segmpm.simulation import Simulation
 
     common = ["geometry.depth=0.006", "geometry.width=0.004", "geometry.mirror=true",
               "output.checkpoint_interval=0.01", "output.profile_times=[0.0, 0.01, 0.02]"]  # fmt: skip
-    full = Simulation(_cfg([*common, "time.end=0.02"]), tmp_path / "full")
+    full = Simulation(_nl_cfg([*common, "time.end=0.02"]), tmp_path / "full")
     assert type(full).__name__ == "EngineSimulation"
     assert full.run().status == "completed"
-    part = Simulation(_cfg([*common, "time.end=0.01"]), tmp_path / "part")
+    part = Simulation(_nl_cfg([*common, "time.end=0.01"]), tmp_path / "part")
     assert part.run().status == "completed"
-    cont = Simulation(_cfg([*common, "time.end=0.02"]), tmp_path / "part")
+    cont = Simulation(_nl_cfg([*common, "time.end=0.02"]), tmp_path / "part")
     assert cont.run(resume=True).status == "completed"
     np.testing.assert_array_equal(full.engine.points.v, cont.engine.points.v)
+    np.testing.assert_array_equal(full.engine.points.gf, cont.engine.points.gf)
+    assert full.engine.points.gf.max() > 0.0
+    assert full.engine.clock[0]["nflu"] == cont.engine.clock[0]["nflu"] > 0
+    import json
+
+    info = json.loads((tmp_path / "part" / "run.json").read_text())
+    assert info["fluidity_updates"] == int(full.engine.clock[0]["nflu"])
     import xarray as xr
 
     with (
@@ -242,7 +251,7 @@ def test_3d_run_resumes_to_the_same_result(tmp_path):
 @pytest.mark.parametrize(
     "override, key",
     [
-        ("material.rheology='nonlocal', material.q_phi=0.75", "material.rheology"),
+        ("grid.transfer='flip'", "grid.transfer"),
         ("scenario.kind='box'", "scenario.kind"),
         ("geometry.width=0.0215", "geometry.width"),
         ("scenario.solver='column'", "scenario.solver"),
@@ -380,3 +389,195 @@ def test_3d_cli_run_writes_3d_snapshots_and_cross_sections(tmp_path):
     with xr.open_dataset(out / "profiles.nc") as ds:
         f = ds.solid_fraction.sel(time=0.0).values
         assert np.nanmedian(f) == pytest.approx(0.6, rel=0.02)  # area = length × modelled width
+
+
+# ---------------------------------------------------------------------------------------------
+# the nonlocal rheology on the generic engine
+
+
+def _nl_cfg(extra=(), dim=3):
+    """The grain-calibrated nonlocal preset on a small 3-D (or 2-D) strip."""
+    return load_config(None, [*LOCAL3D[1:], "material.rheology='nonlocal'",
+                              f"geometry.dimension={dim}", *extra],
+                       preset="chute_nonlocal")  # fmt: skip
+
+
+@pytest.mark.parametrize("driver", ["P", "G", "A"])
+def test_nonlocal_tensor_law_matches_numpy_reference(driver):
+    """The fluidity flow rule in full tensor form against the full-matrix NumPy reference (its
+    return factor by bisection), for fluidities from none to far past the return's stiff
+    limit G Δt g ≫ p."""
+    cfg = _nl_cfg([f"segregation.driver='{driver}'", "segregation.model='none'"])
+    st = build(cfg, 3)
+    k = kernels(3)
+    rng = np.random.default_rng(13)
+    n = 64
+    L, e, J, phi = _random_state(rng, n, 3)
+    J[:4] = np.exp(1e-3)  # gas
+    g = 10.0 ** rng.uniform(-3, 4, n)
+    g[4:8] = 0.0
+    dt = 1e-4
+    ref = ngf_tensor_np(st.mat[0], L, e, J, phi, g, dt)
+    for p in range(n):
+        r = np.array(k.material(st.mat, tuple(L[p].ravel()), tuple(e[p]), J[p], phi[p], g[p], dt))
+        np.testing.assert_allclose(r[0:6], ref["eps"][p], rtol=1e-9, atol=1e-15)
+        scale = max(1.0, np.abs(ref["sig"][p]).max())
+        np.testing.assert_allclose(r[6:12], ref["sig"][p], rtol=1e-9, atol=1e-11 * scale)
+        for q, name in enumerate(("pe", "gdot", "inertial", "S", "c", "nu")):
+            np.testing.assert_allclose(r[12 + q], ref[name][p], rtol=1e-9, atol=1e-14,
+                                       err_msg=name)  # fmt: skip
+
+
+def test_nonlocal_tensor_law_is_objective_and_plane_strain_is_the_2d_law():
+    """σ(Q L Qᵀ, Q ε Qᵀ) = Q σ Qᵀ for rotations Q; the 2-D specialisation is the production
+    plane-strain law (materials.ngf NumPy reference, components (xx, yy, xy, zz))."""
+    from scipy.spatial.transform import Rotation
+
+    from segmpm.materials.ngf import ngf_update_np
+
+    st = build(_nl_cfg(["segregation.model='none'"]), 3)
+    k = kernels(3)
+    rng = np.random.default_rng(17)
+    L, e, J, phi = _random_state(rng, 16, 3)
+    g = 10.0 ** rng.uniform(-2, 3, 16)
+    Q = Rotation.random(16, random_state=5).as_matrix()
+    for p in range(16):
+        r = np.array(k.material(st.mat, tuple(L[p].ravel()), tuple(e[p]), J[p], phi[p], g[p],
+                                1e-4))  # fmt: skip
+        Lr = Q[p] @ L[p] @ Q[p].T
+        er = mat_to_sym((Q[p] @ sym_to_mat(e[p : p + 1])[0] @ Q[p].T)[None])[0]
+        rr = np.array(k.material(st.mat, tuple(Lr.ravel()), tuple(er), J[p], phi[p], g[p], 1e-4))
+        sig = sym_to_mat(r[None, 6:12])[0]
+        np.testing.assert_allclose(rr[6:12], mat_to_sym((Q[p] @ sig @ Q[p].T)[None])[0],
+                                   atol=1e-9 * np.abs(sig).max())  # fmt: skip
+        np.testing.assert_allclose(rr[12:], r[12:], rtol=1e-9, atol=1e-14)
+
+    st2 = build(_nl_cfg(["segregation.model='none'"], dim=2), 2)
+    k2 = kernels(2)
+    L, e, J, phi = _random_state(rng, 32, 2)
+    g = 10.0 ** rng.uniform(-2, 3, 32)
+    eps4 = np.stack([e[:, 0], e[:, 1], e[:, 3], e[:, 2]], axis=1)
+    ref = ngf_update_np(st2.mp, L[:, :2, :2], 1e-4, eps4, J, phi, g)
+    for p in range(32):
+        r = np.array(k2.material(st2.mat, tuple(L[p].ravel()), tuple(e[p]), J[p], phi[p], g[p],
+                                 1e-4))  # fmt: skip
+        np.testing.assert_allclose(r[[0, 1, 3, 2]], ref[0][p], rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(r[[6, 7, 9, 8]], ref[1][p], rtol=1e-9,
+                                   atol=1e-11 * np.abs(ref[1][p]).max())  # fmt: skip
+        np.testing.assert_allclose(r[12], ref[2][p], rtol=1e-9)
+
+
+def _fluidity_grid(shape, h, periodic):
+    from segmpm.engine.records import PARAMS
+
+    prm = np.zeros(1, dtype=PARAMS)
+    prm["h"] = h
+    prm["nodes"][:] = shape
+    prm["periodic_x"] = 1 if periodic else 0
+    return prm
+
+
+def test_fluidity_diffusion_decays_the_discrete_eigenmodes_exactly():
+    """The 3-D fluidity diffusion (explicit finite volumes, sub-stepped) on a box of active
+    nodes: periodic in x, zero-flux (free surface / frictional wall) ends in z, Dirichlet nodes
+    (a rough wall, g = 0) at both ends in y. A product of the discrete eigenmodes
+    cos(2π i/N_x) sin(π j/(N_y − 1)) cos(π (k + ½)/N_z) decays by (1 − Δs D λ)^n_sub with
+    λ = Σ_axes (2 − 2 cos θ_axis)/h² — the closed form of the scheme, to round-off."""
+    k3 = kernels(3)
+    nx, ny, nz, h, D0 = 8, 9, 6, 1e-3, 2e-3
+    prm = _fluidity_grid((nx, ny, nz), h, True)
+    fw = np.zeros((k3.NW, nx, ny, nz))
+    i, j, kk = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
+    mode = (np.cos(2 * np.pi * i / nx) * np.sin(np.pi * j / (ny - 1))
+            * np.cos(np.pi * (kk + 0.5) / nz))  # fmt: skip
+    fw[k3.W_KIND] = k3.K_ACTIVE
+    fw[k3.W_KIND][:, [0, ny - 1], :] = k3.K_DIRICHLET
+    fw[k3.W_CAP] = 1.0
+    fw[k3.W_DIFF] = D0
+    fw[k3.W_G] = np.where(fw[k3.W_KIND] == k3.K_ACTIVE, mode, 0.0)
+    dt = 2e-4
+    nsub = k3.diffuse(fw, prm, dt, D0)
+    lam = ((2 - 2 * np.cos(2 * np.pi / nx)) + (2 - 2 * np.cos(np.pi / (ny - 1)))
+           + (2 - 2 * np.cos(np.pi / nz))) / h**2  # fmt: skip
+    assert nsub == int(np.ceil(dt * 6 * D0 / h**2 / 0.9))
+    expected = mode * (1 - dt / nsub * D0 * lam) ** nsub
+    active = fw[k3.W_KIND] == k3.K_ACTIVE
+    np.testing.assert_allclose(fw[k3.W_G][active], expected[active], rtol=0, atol=1e-13)
+    # and the continuous decay, to the scheme's O(h²) + O(Δs) error
+    lam_c = ((2 * np.pi / (nx * h)) ** 2 + (np.pi / ((ny - 1) * h)) ** 2
+             + (np.pi / (nz * h)) ** 2)  # fmt: skip
+    ratio = np.abs(fw[k3.W_G][active]).max() / np.abs(mode[active]).max()
+    assert ratio == pytest.approx(np.exp(-D0 * lam_c * dt), rel=0.05)
+
+
+def test_fluidity_step_2d_is_the_production_step():
+    """The generic fluidity update in 2-D (P2G, node kinds, cut-cell diffusion, G2P with the PIC
+    share, local relaxation) is mpm.fluidity.fluidity_step on the same points, to round-off."""
+    from segmpm.mpm.fluidity import allocate
+    from segmpm.mpm.fluidity import fluidity_step as production
+    from segmpm.mpm.params import G_H, G_NX, G_NY, G_X0, G_Y0
+    from segmpm.simulation import Simulation
+
+    cfg = _nl_cfg(["geometry.depth=0.008", "segregation.model='none'"], dim=2)
+    st = build(cfg, 2)
+    P = st.points
+    rng = np.random.default_rng(23)
+    n = st.n
+    P.phi[:] = rng.uniform(0.2, 0.8, n)
+    P.gf[:] = np.where(rng.random(n) < 0.2, 0.0, 10.0 ** rng.uniform(-1, 2, n))
+    tau = rng.uniform(0.2, 0.6, n) * P.diag[0]  # a shear stress: μ around μ_s
+    P.sig[3] = tau
+    gp = Simulation(cfg).state.gp
+    pr = st.prm[0]
+    assert (gp[G_X0], gp[G_Y0], gp[G_H]) == (pr["origin"][0], pr["origin"][1], pr["h"])
+    assert (int(gp[G_NX]), int(gp[G_NY])) == tuple(pr["nodes"][:2])
+    gf = P.gf.copy()
+    sig4 = np.stack([P.sig[0], P.sig[1], P.sig[3], P.sig[2]])
+    dt = 2.5e-4
+    nref = production(P.x, P.mass, P.phi, sig4, P.diag[0], gf, gp, st.mp,
+                      allocate(int(gp[G_NX]), int(gp[G_NY])), dt)  # fmt: skip
+    g0 = P.gf.copy()
+    nsub = kernels(2).fluidity_step(P, st.grid, st.prm, st.mat, dt)
+    assert nsub == nref > 0
+    np.testing.assert_allclose(P.gf, gf, rtol=1e-12, atol=1e-300)
+    assert np.abs(P.gf - g0).max() > 0.05 * np.abs(g0).max()  # something happened
+
+
+def test_nonlocal_chute_between_frictionless_walls_is_plane_strain():
+    """A 3-D nonlocal chute between frictionless walls is the 2-D nonlocal chute without the
+    sidewall force, to round-off: the fluidity's P2G, diffusion (zero flux through the walls)
+    and G2P are z-invariant for a z-invariant state."""
+    common = ["geometry.depth=0.006", "geometry.width=0.003", "boundary.sidewall_friction=0",
+              "boundary.sidewall_slip_speed=0", "segregation.model='none'"]  # fmt: skip
+    s3 = _run(build(_nl_cfg(common), 3), 0.04)
+    s2 = _run(build(_nl_cfg(common, dim=2), 2), 0.04)
+    P3, P2 = s3.points, s2.points
+    nz = 6
+    assert s3.clock[0]["nflu"] == s2.clock[0]["nflu"] > 100
+    u_s = np.abs(P2.v[0]).max()
+    assert u_s > 1e-3 and P2.gf.max() > 0.0
+    np.testing.assert_allclose(P3.v[0].reshape(-1, nz), np.repeat(P2.v[0][:, None], nz, axis=1),
+                               atol=1e-9 * u_s)  # fmt: skip
+    np.testing.assert_allclose(P3.gf.reshape(-1, nz), np.repeat(P2.gf[:, None], nz, axis=1),
+                               rtol=1e-8, atol=1e-9 * P2.gf.max())  # fmt: skip
+    assert np.abs(P3.v[2]).max() < 1e-9 * u_s
+
+
+def test_resolved_wall_speed_dependent_friction_terminal_speed():
+    """A block pressed onto the wall z = 0 with the wall law μ(u) = μ₀ + (μ∞ − μ₀) u/(u + u_w)
+    reaches the terminal speed where μ(u*) = tan θ: u* = u_w (tan θ − μ₀)/(μ∞ − tan θ)."""
+    mu0, mu_inf, uw, theta, g = 0.1, 0.6, 0.05, np.radians(20.0), 9.81
+    cfg = _cfg(["material.model='linear_elastic'", "material.youngs_modulus=2e5",
+                "material.poisson_ratio=0.3", "geometry.depth=0.004", "geometry.width=0.004",
+                f"boundary.sidewall_friction={mu_inf}", f"boundary.sidewall_friction_slow={mu0}",
+                f"boundary.sidewall_slip_speed={uw}", "material.initial_state='stress_free'",
+                "time.cfl=0.3"])  # fmt: skip
+    st = build(cfg, 3)
+    prm = st.prm
+    prm["base_kind"] = PLANE_CODES["open"]
+    prm["zhi_kind"] = PLANE_CODES["open"]
+    prm["gravity"][0] = (g * np.sin(theta), 0.0, -g * np.cos(theta))
+    _run(st, 0.4)
+    u = float(np.average(st.points.v[0], weights=st.points.mass))
+    tan = np.tan(theta)
+    assert u == pytest.approx(uw * (tan - mu0) / (mu_inf - tan), rel=0.03)

@@ -417,7 +417,7 @@ class Config(_Section):
         need = {
             "scenario.kind": (self.scenario.kind, ("chute", "collapse")),
             "scenario.solver": (self.scenario.solver, ("mpm",)),
-            "material.rheology": (self.material.rheology, ("local",)),
+            "material.rheology": (self.material.rheology, ("local", "nonlocal")),
             "grid.transfer": (self.grid.transfer, ("aflip", "apic")),
         }
         for key, (value, allowed) in need.items():

@@ -15,7 +15,9 @@ Order of a step (:func:`advance`, docs/architecture.md):
 3. grid update: v* = (m v + Δt (f + m g))/m, the 2-D sidewall body force, the boundary planes;
    and the image nodes' velocities from their mirrors;
 4. G2P: APIC/AFLIP velocity, affine matrix C, velocity gradient L, advection, J;
-5. material law (Fei et al. 2016, Jiang–Liu elasticity + yield cap + μ(I)) and the step check;
+5. material law (Fei et al. 2016, Jiang–Liu elasticity + yield cap + μ(I), or the fluidity flow
+   rule of the nonlocal rheology) and the step check; with the nonlocal rheology, every
+   ``material.fluidity_dt`` the fluidity update (diffusion on the grid, local relaxation);
 6. every segregation subcycle, the concentration step on the extra Eulerian grid.
 
 Points, grid and parameters are the named records of :mod:`segmpm.engine.records`.
@@ -31,8 +33,17 @@ from numba import njit, prange
 from segmpm import _llvm_options  # noqa: F401  (before any kernel compiles)
 from segmpm._fmath import flog, fsqrt
 from segmpm.engine.records import BC_FRICTION, BC_NOSLIP, BC_OPEN, BC_SLIP, BC_SYMMETRY
-from segmpm.materials.params import DRIVER_A, DRIVER_B, DRIVER_P, KIND_FEI2016
+from segmpm.materials.ngf import relax_logistic, return_factor
+from segmpm.materials.params import (
+    DRIVER_A,
+    DRIVER_B,
+    DRIVER_C,
+    DRIVER_P,
+    KIND_FEI2016,
+    KIND_FEI2016_NGF,
+)
 from segmpm.mpm.boundary import sidewall_drag
+from segmpm.mpm.fluidity import CAPACITY_MIN, FILL_OFFSET, FILL_SLOPE, PIC, SAFETY, TINY
 from segmpm.mpm.params import (
     ST_DT_COLLAPSE,
     ST_LEFT_GRID,
@@ -426,10 +437,12 @@ def mirror_images(G, planes):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _plane(kind, mu, vn, t1, t2):
+def _plane(kind, mu, mu0, uw, vn, t1, t2):
     """A wall in its own frame (vn > 0 points away from the wall into the material): no-slip,
     symmetry (vn = 0), free slip or Coulomb friction (the tangential impulse at most μ times the
-    normal one; Bardenhagen, Brackbill & Sulsky 2000); slip and friction let the material leave."""
+    normal one; Bardenhagen, Brackbill & Sulsky 2000); slip and friction let the material leave.
+    With u_w > 0 the friction grows with the (trial) sliding speed u, μ(u) = μ₀ + (μ − μ₀)
+    u/(u + u_w) (the wall law measured at a flat wall, docs/calibration.md)."""
     if kind == BC_NOSLIP:
         return 0.0, 0.0, 0.0
     if kind == BC_SYMMETRY:
@@ -440,6 +453,8 @@ def _plane(kind, mu, vn, t1, t2):
         return 0.0, t1, t2
     dvn = -vn
     at = math.sqrt(t1 * t1 + t2 * t2)
+    if uw > 0.0:
+        mu = mu0 + (mu - mu0) * at / (at + uw)
     if at <= mu * dvn:
         return 0.0, 0.0, 0.0
     s = 1.0 - mu * dvn / at
@@ -449,22 +464,24 @@ def _plane(kind, mu, vn, t1, t2):
 @njit(cache=True, error_model="numpy", inline="always")
 def apply_planes(prm, xn, yn, zn, vx, vy, vz):
     """The velocity of the node at (xn, yn, zn) after the boundary planes (nodes at and beyond a
-    plane): the base y = base_y, the walls x = xlo, xhi (non-periodic x), z = zlo, zhi (3-D)."""
+    plane): the base y = base_y, the walls x = xlo, xhi (non-periodic x), z = zlo, zhi (3-D;
+    their friction may depend on the sliding speed, ``wall_mu0``, ``wall_speed``)."""
     pr = prm[0]
     tol = 1e-9 * pr.h
     if pr.base_kind != BC_OPEN and yn <= pr.base_y + tol:
-        vy, vx, vz = _plane(pr.base_kind, pr.base_mu, vy, vx, vz)
+        vy, vx, vz = _plane(pr.base_kind, pr.base_mu, pr.base_mu, 0.0, vy, vx, vz)
     if pr.periodic_x == 0:
         if pr.xlo_kind != BC_OPEN and xn <= pr.xlo + tol:
-            vx, vy, vz = _plane(pr.xlo_kind, pr.xlo_mu, vx, vy, vz)
+            vx, vy, vz = _plane(pr.xlo_kind, pr.xlo_mu, pr.xlo_mu, 0.0, vx, vy, vz)
         if pr.xhi_kind != BC_OPEN and xn >= pr.xhi - tol:
-            nvx, vy, vz = _plane(pr.xhi_kind, pr.xhi_mu, -vx, vy, vz)
+            nvx, vy, vz = _plane(pr.xhi_kind, pr.xhi_mu, pr.xhi_mu, 0.0, -vx, vy, vz)
             vx = -nvx
     if D == 3:
+        uw = pr.wall_speed
         if pr.zlo_kind != BC_OPEN and zn <= pr.zlo + tol:
-            vz, vx, vy = _plane(pr.zlo_kind, pr.zlo_mu, vz, vx, vy)
+            vz, vx, vy = _plane(pr.zlo_kind, pr.zlo_mu, pr.wall_mu0, uw, vz, vx, vy)
         if pr.zhi_kind != BC_OPEN and zn >= pr.zhi - tol:
-            nvz, vx, vy = _plane(pr.zhi_kind, pr.zhi_mu, -vz, vx, vy)
+            nvz, vx, vy = _plane(pr.zhi_kind, pr.zhi_mu, pr.wall_mu0, uw, -vz, vx, vy)
             vz = -nvz
     return vx, vy, vz
 
@@ -740,15 +757,10 @@ THIRD = 1.0 / 3.0
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def fei_tensor(mat, L, e, J, phi, dt):
-    """Stress update of one point, Fei et al. 2016 (docs/model.md §1) in full tensor form.
-
-    ``L`` the velocity gradient (row-major 3×3), ``e`` the elastic strain (xx, yy, zz, xy, xz,
-    yz), J the volume ratio (I₁ = −ln J), φ_s. Steps: objective (Jaumann) predictor
-    ε + Δt (d + w ε − ε w); the yield cap √I₂ ≤ r_c I₁/q_φ on the deviator; the Jiang–Liu stress
-    σ^e = −p_e 1 + C √I₁ ε⁰; the dissipative σ^d = 2 η d′ with η = a d̄^b ρ_s^{b/2} p_e^{1−b/2}
-    γ̇^{b−1} (d̄ = φ_s d_s + (1 − φ_s) d_l); a bulk viscosity ζ ρ c h tr d; the gas state (no
-    stress) for I₁ ≤ 0. Returns (ε⁶, σ⁶, p_e, γ̇, I, S, c, ν)."""
+def _kinematics(L, e, dt):
+    """The rate of deformation of L and the objective predictor of ε: the deviatoric rate d′
+    (xx, yy, zz), the shear rates d (xy, xz, yz), tr d, γ̇ = √(2 d′:d′), and the Jaumann
+    predictor ε + Δt (d + w ε − ε w) (xx, yy, zz, xy, xz, yz)."""
     lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz = L
     exx, eyy, ezz, exy, exz, eyz = e
     dxy = 0.5 * (lxy + lyx)
@@ -777,6 +789,21 @@ def fei_tensor(mat, L, e, J, phi, dt):
     exy = exy + dt * (dxy + qxy)
     exz = exz + dt * (dxz + qxz)
     eyz = eyz + dt * (dyz + qyz)
+    return dpxx, dpyy, dpzz, dxy, dxz, dyz, trd, gdot, exx, eyy, ezz, exy, exz, eyz
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def fei_tensor(mat, L, e, J, phi, dt):
+    """Stress update of one point, Fei et al. 2016 (docs/model.md §1) in full tensor form.
+
+    ``L`` the velocity gradient (row-major 3×3), ``e`` the elastic strain (xx, yy, zz, xy, xz,
+    yz), J the volume ratio (I₁ = −ln J), φ_s. Steps: objective (Jaumann) predictor
+    ε + Δt (d + w ε − ε w); the yield cap √I₂ ≤ r_c I₁/q_φ on the deviator; the Jiang–Liu stress
+    σ^e = −p_e 1 + C √I₁ ε⁰; the dissipative σ^d = 2 η d′ with η = a d̄^b ρ_s^{b/2} p_e^{1−b/2}
+    γ̇^{b−1} (d̄ = φ_s d_s + (1 − φ_s) d_l); a bulk viscosity ζ ρ c h tr d; the gas state (no
+    stress) for I₁ ≤ 0. Returns (ε⁶, σ⁶, p_e, γ̇, I, S, c, ν)."""
+    dpxx, dpyy, dpzz, dxy, dxz, dyz, trd, gdot, exx, eyy, ezz, exy, exz, eyz = _kinematics(
+        L, e, dt)  # fmt: skip
     t3 = (exx + eyy + ezz) * THIRD
     e0xx = exx - t3
     e0yy = eyy - t3
@@ -844,23 +871,7 @@ def fei_tensor(mat, L, e, J, phi, dt):
 @njit(cache=True, error_model="numpy", inline="always")
 def elastic_tensor(mat, L, e, J, phi, dt):
     """Linear (Hooke) elasticity with the Jaumann predictor: σ = λ tr ε 1 + 2 μ ε (tests)."""
-    lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz = L
-    exx, eyy, ezz, exy, exz, eyz = e
-    wxy = 0.5 * (lxy - lyx)
-    wxz = 0.5 * (lxz - lzx)
-    wyz = 0.5 * (lyz - lzy)
-    mxx = wxy * exy + wxz * exz
-    myy = -wxy * exy + wyz * eyz
-    mzz = -wxz * exz - wyz * eyz
-    qxy = wxy * eyy + wxz * eyz - wxy * exx + wyz * exz
-    qxz = wxy * eyz + wxz * ezz - wxz * exx - wyz * exy
-    qyz = -wxy * exz + wyz * ezz - wxz * exy - wyz * eyy
-    exx = exx + dt * (lxx + 2.0 * mxx)
-    eyy = eyy + dt * (lyy + 2.0 * myy)
-    ezz = ezz + dt * (lzz + 2.0 * mzz)
-    exy = exy + dt * (0.5 * (lxy + lyx) + qxy)
-    exz = exz + dt * (0.5 * (lxz + lzx) + qxz)
-    eyz = eyz + dt * (0.5 * (lyz + lzy) + qyz)
+    _, _, _, _, _, _, _, _, exx, eyy, ezz, exy, exz, eyz = _kinematics(L, e, dt)
     lam = mat.lame_lambda
     mu = mat.mu
     tr = exx + eyy + ezz
@@ -872,12 +883,95 @@ def elastic_tensor(mat, L, e, J, phi, dt):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def material(mat, L, e, J, phi, dt):
+def ngf_tensor(mat, L, e, J, phi, g, dt):
+    """Stress update of one point with the fluidity flow rule of the nonlocal rheology
+    (docs/model.md, "Nonlocal rheology"), in full tensor form: the objective predictor, then the
+    implicit return ε⁰ ← f ε⁰_tr of γ̇ᵖ = g μ with f (p(f) + G Δt g) = p(f) (G = C√I₁/2, p the
+    Jiang–Liu pressure of the returned state: ``materials.ngf.return_factor``), the convexity
+    guard √I₂ ≤ r_c I₁/q_φ, the Jiang–Liu stress and a bulk viscosity; no σ^d (the rate
+    dependence is the fluidity's). ``g`` the point's fluidity (1/s). The contract of
+    :func:`fei_tensor`."""
+    dpxx, dpyy, dpzz, dxy, dxz, dyz, trd, gdot, exx, eyy, ezz, exy, exz, eyz = _kinematics(
+        L, e, dt)  # fmt: skip
+    t3 = (exx + eyy + ezz) * THIRD
+    e0xx = exx - t3
+    e0yy = eyy - t3
+    e0zz = ezz - t3
+    I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz
+                + 2.0 * (exy * exy + exz * exz + eyz * eyz))  # fmt: skip
+    I1 = -flog(J)
+    third = I1 * THIRD
+    if I1 <= 0.0:
+        v = -third
+        return (v, v, v, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                0.0, gdot, 0.0, 0.0, 0.0, 0.0)  # fmt: skip
+    A = mat.a
+    Cj = mat.c
+    rho_s = mat.rho_s
+    rho = mat.f * rho_s / J
+    sq = fsqrt(I1)
+    isq = 1.0 / sq
+    a0 = 2.5 * A * I1 * sq
+    k = 0.5 * Cj * sq * dt * g
+    # a trial state so far out that the return's cubic could have several roots is first
+    # pulled back onto a2 = 2 (a0 + k) (materials.ngf.return_factor)
+    lim = 4.0 * (a0 + k) * sq / Cj
+    over = I2 > lim
+    s = fsqrt(lim / I2) if over else 1.0
+    I2 = lim if over else I2
+    f = s * return_factor(a0, 0.5 * Cj * I2 * isq, k)
+    I2 *= (f / s) * (f / s)
+    cap = mat.capr * I1
+    over = I2 > cap * cap
+    f *= cap / fsqrt(I2) if over else 1.0
+    I2 = cap * cap if over else I2
+    e0xx *= f
+    e0yy *= f
+    e0zz *= f
+    e0xy = exy * f
+    e0xz = exz * f
+    e0yz = eyz * f
+    pe = 2.5 * A * I1 * sq + 0.5 * Cj * I2 * isq
+    G2 = Cj * sq
+    dbar = phi * mat.ds + (1.0 - phi) * mat.dl
+    spe = fsqrt(rho_s * pe)
+    inertial = gdot * dbar * rho_s / spe if pe > 0.0 else 0.0
+    c = fsqrt(mat.cw * sq * J * mat.irho0)
+    zeta = mat.zeta * rho * c * mat.h
+    vol = zeta * trd - pe
+    sxx = G2 * e0xx + vol
+    syy = G2 * e0yy + vol
+    szz = G2 * e0zz + vol
+    sxy = G2 * e0xy
+    sxz = G2 * e0xz
+    syz = G2 * e0yz
+    driver = int(mat.driver)
+    if driver == DRIVER_A:
+        S = mat.ngf_b * inertial * pe  # the rate-dependent part b I p of the local law
+    elif driver == DRIVER_B:
+        S = mat.kappa_t * rho * (gdot * dbar) ** 2
+    elif driver == DRIVER_C:
+        S = 0.0
+    elif driver == DRIVER_P:
+        S = pe
+    else:
+        S = mat.kappa_g * rho * (g * dbar) ** 2
+    S *= mat.kappa
+    nu = zeta * J * mat.irho0
+    return (e0xx - third, e0yy - third, e0zz - third, e0xy, e0xz, e0yz,
+            sxx, syy, szz, sxy, sxz, syz, pe, gdot, inertial, S, c, nu)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def material(mat, L, e, J, phi, g, dt):
     """The constitutive law chosen at set-up (``mat.kind``): the extension point for a new model
-    (docs/architecture.md): a function of (record, L, ε, J, φ_s, Δt) with this return contract."""
+    (docs/architecture.md): a function of (record, L, ε, J, φ_s, g, Δt) with this return
+    contract (``g`` the point's fluidity, read by the nonlocal law only)."""
     m = mat[0]
     if m.kind == KIND_FEI2016:
         return fei_tensor(m, L, e, J, phi, dt)
+    if m.kind == KIND_FEI2016_NGF:
+        return ngf_tensor(m, L, e, J, phi, g, dt)
     return elastic_tensor(m, L, e, J, phi, dt)
 
 
@@ -898,12 +992,13 @@ def update_stress(P, mat, dt, full):
     g_int = P.g_int
     lg = P.lg
     flags = P.flags
+    gf = P.gf
     n = x.shape[1]
     smax = 0.0
     numax = 0.0
     bad = n
     for p in prange(n):
-        r = material(mat, _mat(lg, p), _sym(eps, p), J[p], phi[p], dt)
+        r = material(mat, _mat(lg, p), _sym(eps, p), J[p], phi[p], gf[p], dt)
         _put_sym(eps, p, r[0], r[1], r[2], r[3], r[4], r[5])
         _put_sym(sig, p, r[6], r[7], r[8], r[9], r[10], r[11])
         diag[0, p] = r[12]
@@ -943,6 +1038,274 @@ def prime(P, mat):
     update_stress(P, mat, 0.0, True)
     P.s_int[:] = s
     P.g_int[:] = g
+
+
+# ---------------------------------------------------------------------------------------------
+# 5b. nonlocal fluidity: diffusion on the MPM grid, local relaxation at the points
+#     (docs/model.md, "Nonlocal rheology"; the scheme, constants and boundary rules of
+#     segmpm.mpm.fluidity, written for D dimensions)
+
+#: fields of the fluidity work array ``G.fw`` (NW, n_x, n_y, n_z): the P2G sums of m, m g, m φ_s,
+#: the nodal g and its value before the diffusion, the node diffusivity A² d̄²/t₀, the capacity
+#: (filled part of the control volume), the Laplacian of a sub-step, the node kind
+W_M, W_MG, W_MPHI, W_G, W_G0, W_DIFF, W_CAP, W_LAP, W_KIND = range(9)
+NW = 9
+#: node kinds (``W_KIND``): no material, fluidity carrying, Dirichlet g = 0 (rough walls)
+K_EMPTY, K_ACTIVE, K_DIRICHLET = 0.0, 1.0, 2.0
+
+
+@njit(cache=True, error_model="numpy")
+def _fluidity_p2g(P, fw, prm):
+    """P2G of m, m g and m φ_s (serial: the nodes receive their sums in point order)."""
+    pr = prm[0]
+    ih = 1.0 / pr.h
+    nx = pr.nodes[0]
+    periodic = pr.periodic_x != 0
+    x0 = pr.origin[0]
+    y0 = pr.origin[1]
+    z0 = pr.origin[2]
+    x = P.x
+    mass = P.mass
+    gf = P.gf
+    phi = P.phi
+    for p in range(x.shape[1]):
+        bx, wx0, wx1, wx2, _, _, _, _ = bspline2_frac((x[0, p] - x0) * ih)
+        by, wy0, wy1, wy2, _, _, _, _ = bspline2_frac((x[1, p] - y0) * ih)
+        if D == 3:
+            zp = x[2, p]
+        else:
+            zp = 0.0
+        bz, wz0, wz1, wz2, _, _, _, _ = _z_axis(zp, z0, ih)
+        wx = (wx0, wx1, wx2)
+        wy = (wy0, wy1, wy2)
+        wz = (wz0, wz1, wz2)
+        m = mass[p]
+        mg = m * gf[p]
+        mf = m * phi[p]
+        for a in range(3):
+            i = _wrap(bx + a, nx) if periodic else bx + a
+            for b in range(3):
+                j = by + b
+                wab = wx[a] * wy[b]
+                for c in range(SZ):
+                    k = bz + c
+                    w = wab * wz[c]
+                    fw[W_M, i, j, k] += w * m
+                    fw[W_MG, i, j, k] += w * mg
+                    fw[W_MPHI, i, j, k] += w * mf
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _rough(kind, at, where, tol, side):
+    """True if a node at coordinate ``at`` lies at or beyond a no-slip plane at ``where``."""
+    if kind != BC_NOSLIP:
+        return False
+    return at <= where + tol if side < 0 else at >= where - tol
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _fluidity_nodes(fw, prm, mat):
+    """Nodal g, diffusivity, capacity and kind from the P2G sums; returns max D/c (the explicit
+    stability limit). The free surface and the frictional, slip and symmetry planes are
+    zero-flux cut cells (capacity c = clamp(1.5 m/m_full − 0.25, 0, 1)); nodes at and beyond a
+    no-slip plane are Dirichlet nodes (g = 0)."""
+    pr = prm[0]
+    m0 = mat[0]
+    nx, ny, nz = fw.shape[1], fw.shape[2], fw.shape[3]
+    h = pr.h
+    tol = 1e-9 * h
+    m_full = m0.f * m0.rho_s * h**D
+    coef = m0.ngf_a**2 / m0.t0
+    ds = m0.ds
+    dl = m0.dl
+    x0 = pr.origin[0]
+    y0 = pr.origin[1]
+    z0 = pr.origin[2]
+    closed = pr.periodic_x == 0
+    base_kind, base_y = pr.base_kind, pr.base_y
+    xlo_kind, xlo, xhi_kind, xhi = pr.xlo_kind, pr.xlo, pr.xhi_kind, pr.xhi
+    zlo_kind, zlo, zhi_kind, zhi = pr.zlo_kind, pr.zlo, pr.zhi_kind, pr.zhi
+    dmax = 0.0
+    for i in prange(nx):
+        xn = x0 + i * h
+        for j in range(ny):
+            yn = y0 + j * h
+            for k in range(nz):
+                zn = z0 + k * h
+                m = fw[W_M, i, j, k]
+                cap = min(1.0, max(0.0, FILL_SLOPE * m / m_full - FILL_OFFSET))
+                kind = K_ACTIVE if cap > 0.0 else K_EMPTY
+                rough = _rough(base_kind, yn, base_y, tol, -1)
+                if closed:
+                    rough = (rough or _rough(xlo_kind, xn, xlo, tol, -1)
+                             or _rough(xhi_kind, xn, xhi, tol, 1))  # fmt: skip
+                if D == 3:
+                    rough = (rough or _rough(zlo_kind, zn, zlo, tol, -1)
+                             or _rough(zhi_kind, zn, zhi, tol, 1))  # fmt: skip
+                if rough:
+                    kind = K_DIRICHLET
+                g = 0.0
+                dn = 0.0
+                if kind == K_ACTIVE:
+                    g = fw[W_MG, i, j, k] / m
+                    ph = min(1.0, max(0.0, fw[W_MPHI, i, j, k] / m))
+                    d = ph * ds + (1.0 - ph) * dl
+                    dn = coef * d * d
+                    dmax = max(dmax, dn / max(cap, CAPACITY_MIN))
+                fw[W_DIFF, i, j, k] = dn
+                fw[W_CAP, i, j, k] = max(cap, CAPACITY_MIN) if kind == K_ACTIVE else 0.0
+                fw[W_KIND, i, j, k] = kind
+                fw[W_G, i, j, k] = g
+                fw[W_G0, i, j, k] = g
+    return dmax
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _flux(fw, i, j, k, a, b, c, di, gi):
+    """D_f (g_n − g_i) from node (i, j, k) to its neighbour (a, b, c): the face diffusivity is
+    the mean of the two nodes' (the active node's towards a Dirichlet node); none into empty
+    nodes."""
+    kn = fw[W_KIND, a, b, c]
+    if kn == K_ACTIVE:
+        return 0.5 * (di + fw[W_DIFF, a, b, c]) * (fw[W_G, a, b, c] - gi)
+    if kn == K_DIRICHLET:
+        return -di * gi
+    return 0.0
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def diffuse(fw, prm, dt, dmax):
+    """Explicit finite-volume diffusion of the nodal g over ``dt`` in sub-steps below the
+    stability limit h²/(2 D max D/c): c_i ∂g_i/∂t = Σ_faces D_f (g_j − g_i)/h² over the 2 D
+    neighbours (periodic in x if the grid is). Returns the number of sub-steps."""
+    if not (dmax > 0.0) or not (dt > 0.0):
+        return 0
+    pr = prm[0]
+    nx, ny, nz = fw.shape[1], fw.shape[2], fw.shape[3]
+    ih2 = 1.0 / (pr.h * pr.h)
+    periodic = pr.periodic_x != 0
+    nsub = max(1, int(math.ceil(dt * 2.0 * D * dmax * ih2 / SAFETY)))
+    ds = dt / nsub
+    for _ in range(nsub):
+        for i in prange(nx):
+            ilo = _wrap(i - 1, nx) if periodic else i - 1
+            ihi = _wrap(i + 1, nx) if periodic else i + 1
+            for j in range(ny):
+                for k in range(nz):
+                    fw[W_LAP, i, j, k] = 0.0
+                    if fw[W_KIND, i, j, k] != K_ACTIVE:
+                        continue
+                    di = fw[W_DIFF, i, j, k]
+                    gi = fw[W_G, i, j, k]
+                    acc = 0.0
+                    if ilo >= 0:
+                        acc += _flux(fw, i, j, k, ilo, j, k, di, gi)
+                    if ihi < nx:
+                        acc += _flux(fw, i, j, k, ihi, j, k, di, gi)
+                    if j > 0:
+                        acc += _flux(fw, i, j, k, i, j - 1, k, di, gi)
+                    if j < ny - 1:
+                        acc += _flux(fw, i, j, k, i, j + 1, k, di, gi)
+                    if D == 3:
+                        if k > 0:
+                            acc += _flux(fw, i, j, k, i, j, k - 1, di, gi)
+                        if k < nz - 1:
+                            acc += _flux(fw, i, j, k, i, j, k + 1, di, gi)
+                    fw[W_LAP, i, j, k] = acc * ih2
+        for i in prange(nx):
+            for j in range(ny):
+                for k in range(nz):
+                    if fw[W_KIND, i, j, k] == K_ACTIVE:
+                        fw[W_G, i, j, k] += ds * fw[W_LAP, i, j, k] / fw[W_CAP, i, j, k]
+    return nsub
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def stress_ratio6(sxx, syy, szz, sxy, sxz, syz, p):
+    """μ = τ̄/p with τ̄ = √(½ s:s) of the deviator s of σ; 0 if p ≤ 0."""
+    m = (sxx + syy + szz) * THIRD
+    a = sxx - m
+    b = syy - m
+    c = szz - m
+    tau = math.sqrt(0.5 * (a * a + b * b + c * c) + sxy * sxy + sxz * sxz + syz * syz)
+    return tau / p if p > 0.0 else 0.0
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _fluidity_g2p(P, fw, prm, mat, dt, nsub):
+    """The nodal increment of g back to the points (blended with a PIC share of the nodal
+    value), then the local relaxation at each point with its own μ, p_e and d̄."""
+    pr = prm[0]
+    m0 = mat[0]
+    ih = 1.0 / pr.h
+    nx = pr.nodes[0]
+    periodic = pr.periodic_x != 0
+    x0 = pr.origin[0]
+    y0 = pr.origin[1]
+    z0 = pr.origin[2]
+    rho_s, mu_s, t0, b_, pfloor = m0.rho_s, m0.mu_s, m0.t0, m0.ngf_b, m0.pfloor
+    ds = m0.ds
+    dl = m0.dl
+    x = P.x
+    gf = P.gf
+    phi = P.phi
+    sig = P.sig
+    pres = P.diag[0]
+    for p in prange(x.shape[1]):
+        g = gf[p]
+        if nsub > 0:
+            bx, wx0, wx1, wx2, _, _, _, _ = bspline2_frac((x[0, p] - x0) * ih)
+            by, wy0, wy1, wy2, _, _, _, _ = bspline2_frac((x[1, p] - y0) * ih)
+            if D == 3:
+                zp = x[2, p]
+            else:
+                zp = 0.0
+            bz, wz0, wz1, wz2, _, _, _, _ = _z_axis(zp, z0, ih)
+            wx = (wx0, wx1, wx2)
+            wy = (wy0, wy1, wy2)
+            wz = (wz0, wz1, wz2)
+            dg = 0.0
+            gi = 0.0
+            wsum = 0.0
+            for a in range(3):
+                i = _wrap(bx + a, nx) if periodic else bx + a
+                for b in range(3):
+                    j = by + b
+                    wab = wx[a] * wy[b]
+                    for c in range(SZ):
+                        k = bz + c
+                        if fw[W_KIND, i, j, k] != K_EMPTY:
+                            w = wab * wz[c]
+                            dg += w * (fw[W_G, i, j, k] - fw[W_G0, i, j, k])
+                            gi += w * fw[W_G, i, j, k]
+                            wsum += w
+            g = g + dg
+            if wsum > 0.0:
+                g = (1.0 - PIC) * g + PIC * gi / wsum
+            # a point diffused to (or below) zero keeps a tiny positive g, so that it is not
+            # seeded again (only g = 0, material that never had fluidity, is seeded)
+            g = max(TINY, g) if gf[p] > 0.0 else max(0.0, g)
+        sxx, syy, szz, sxy, sxz, syz = _sym(sig, p)
+        mu = stress_ratio6(sxx, syy, szz, sxy, sxz, syz, pres[p])
+        dbar = phi[p] * ds + (1.0 - phi[p]) * dl
+        gf[p] = relax_logistic(g, mu, pres[p], dbar, dt, rho_s, mu_s, t0, b_, pfloor)
+
+
+@njit(cache=True, error_model="numpy")
+def fluidity_step(P, G, prm, mat, dt):
+    """Advance the fluidity of every point over ``dt`` (Lie splitting of
+    t₀ ∂g/∂t = A² d̄² ∇²g − (μ_s − μ) g − b μ √(ρ_s d̄²/p) g²): nonlocal diffusion on the grid,
+    then the exact local relaxation at the points. Returns the number of diffusion sub-steps."""
+    fw = G.fw
+    nsub = 0
+    if mat[0].ngf_a > 0.0:
+        for f in (W_M, W_MG, W_MPHI):
+            fw[f] = 0.0
+        _fluidity_p2g(P, fw, prm)
+        dmax = _fluidity_nodes(fw, prm, mat)
+        nsub = diffuse(fw, prm, dt, dmax)
+    _fluidity_g2p(P, fw, prm, mat, dt, nsub)
+    return nsub
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1211,6 +1574,7 @@ def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
     nslabs = G.slab_start.shape[0] - 1
     threads = G.bounds.shape[0] - 1
     planes = image_planes(prm)
+    nonlocal_on = mat[0].kind == KIND_FEI2016_NGF
     steps = 0
     while steps < max_steps and clk.time < t_stop:
         t = clk.time
@@ -1243,6 +1607,12 @@ def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
         steps += 1
         if status != ST_OK:
             return status, idx, steps
+        if nonlocal_on:  # 5b. fluidity update, every material.fluidity_dt
+            clk.tflu += dt
+            if clk.tflu >= mat[0].flu_dt * (1.0 - 1e-12):
+                fluidity_step(P, G, prm, mat, clk.tflu)
+                clk.nflu += 1
+                clk.tflu = 0.0
         if clk.tseg >= seg.prm[P_DT_TARGET] * (1.0 - 1e-12):  # 6. segregation subcycle
             concentration_step(P, seg, clk.tseg)
             clk.nseg += 1
@@ -1250,5 +1620,5 @@ def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
     return ST_OK, -1, steps
 
 
-__all__ = ["D", "NE", "NF", "NV", "SLAB", "advance", "apply_planes", "fei_tensor", "g2p",
-           "grid_update", "p2g", "prime", "update_stress"]  # fmt: skip
+__all__ = ["D", "NE", "NF", "NV", "NW", "SLAB", "advance", "apply_planes", "fei_tensor",
+           "fluidity_step", "g2p", "grid_update", "ngf_tensor", "p2g", "prime", "update_stress"]  # fmt: skip

@@ -26,6 +26,7 @@ J         (N,)       volume ratio det F (I₁ = −ln J)
 eps       (NE, N)    elastic strain ε^e, tension positive (NE = 4 in 2-D, 6 in 3-D)
 sig       (NE, N)    Cauchy stress σ, Pa
 phi       (N,)       small-grain concentration φ_s
+gf        (N,)       granular fluidity g of the nonlocal rheology, 1/s (0 otherwise)
 diag      (6, N)     p_e, γ̇, I, S, c + |v|, ν (rows ``D_*`` of segmpm.state)
 s_int     (N,)       ∫ S dt over the current segregation subcycle
 g_int     (N,)       ∫ γ̇ dt over the current segregation subcycle
@@ -92,6 +93,10 @@ PARAMS = np.dtype(
         ("zhi_kind", "i8"),
         ("zhi", "f8"),
         ("zhi_mu", "f8"),
+        # 3-D resolved sidewalls: μ(u) = μ₀ + (μ − μ₀) u/(u + u_w) of the sliding speed u
+        # (u_w = ``wall_speed`` > 0; 0: the constant Coulomb μ of zlo_mu, zhi_mu)
+        ("wall_mu0", "f8"),
+        ("wall_speed", "f8"),
     ],
     align=True,
 )
@@ -129,6 +134,8 @@ CLOCK = np.dtype(
         ("numax", "f8"),  # max kinematic viscosity after the last step, m²/s
         ("tseg", "f8"),  # time accumulated towards the next concentration step, s
         ("nseg", "i8"),  # concentration steps taken
+        ("tflu", "f8"),  # time accumulated towards the next fluidity update, s
+        ("nflu", "i8"),  # fluidity updates taken
     ],
     align=True,
 )
@@ -167,6 +174,7 @@ class Points(NamedTuple):
     eps: np.ndarray
     sig: np.ndarray
     phi: np.ndarray
+    gf: np.ndarray
     diag: np.ndarray
     s_int: np.ndarray
     g_int: np.ndarray
@@ -176,7 +184,8 @@ class Points(NamedTuple):
 
 
 #: arrays of Points that define the physical state (checkpointed); the rest is work
-POINT_STATE = ("x", "v", "C", "mass", "vol0", "J", "eps", "sig", "phi", "diag", "s_int", "g_int")
+POINT_STATE = ("x", "v", "C", "mass", "vol0", "J", "eps", "sig", "phi", "gf", "diag", "s_int",
+               "g_int")
 
 
 class Grid(NamedTuple):
@@ -187,6 +196,7 @@ class Grid(NamedTuple):
     slab_start: np.ndarray  # (n_slabs + 1,) first sorted point of each slab
     order: np.ndarray  # (N,) points sorted by slab
     bounds: np.ndarray  # (threads + 1,) balanced slab runs of one colour
+    fw: np.ndarray  # (NW, n_x, n_y, n_z) the fluidity update's nodal work (nonlocal rheology)
 
 
 __all__ = [

@@ -1,12 +1,13 @@
 """Plain NumPy references of the generic engine's kernels, written with full matrices (no
-component bookkeeping): the material law :func:`fei_tensor_np` and the transfer :func:`p2g_np`.
+component bookkeeping): the material laws :func:`fei_tensor_np` and :func:`ngf_tensor_np` and the
+transfer :func:`p2g_np`.
 tests/test_engine.py checks the compiled kernels against them."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..materials.params import DRIVER_A, DRIVER_B, DRIVER_P
+from ..materials.params import DRIVER_A, DRIVER_B, DRIVER_C, DRIVER_P
 
 _SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
@@ -74,6 +75,72 @@ def fei_tensor_np(mat: np.void, L: np.ndarray, e: np.ndarray, J: np.ndarray, phi
            "inertial": inertial, "S": S, "c": c, "nu": nu}  # fmt: skip
     for k, v in out.items():  # the gas state: no stress, the strain tracks the density
         if k == "gdot":
+            continue
+        v[gas] = 0.0
+    out["eps"][gas, :3] = (-I1[gas] / 3.0)[:, None]
+    return out
+
+
+def ngf_tensor_np(mat: np.void, L: np.ndarray, e: np.ndarray, J: np.ndarray, phi: np.ndarray,
+                  g: np.ndarray, dt: float) -> dict[str, np.ndarray]:  # fmt: skip
+    """The fluidity flow rule of the nonlocal rheology for arrays of points, with full matrices:
+    L (n, 3, 3), e (n, 6), J, φ, g (n,). The return factor f of ε⁰ ← f ε⁰_tr is found by
+    bisection (``materials.ngf.return_factor_np``), independently of the kernel's Newton
+    iteration. Returns the new strain and stress (n, 6) and p_e, γ̇, I, S, c, ν."""
+    from ..materials.ngf import return_factor_np
+
+    eye = np.eye(3)
+    tr = lambda a: np.trace(a, axis1=1, axis2=2)[:, None, None]  # noqa: E731
+    d = 0.5 * (L + np.swapaxes(L, 1, 2))
+    w = 0.5 * (L - np.swapaxes(L, 1, 2))
+    E = sym_to_mat(e)
+    E = E + dt * (d + w @ E - E @ w)
+    dp = d - tr(d) / 3.0 * eye
+    gdot = np.sqrt(2.0 * np.einsum("nij,nij->n", dp, dp))
+    E0 = E - tr(E) / 3.0 * eye
+    I2 = 0.5 * np.einsum("nij,nij->n", E0, E0)
+    I1 = -np.log(J)
+    gas = I1 <= 0
+    I1p = np.where(gas, 1.0, I1)
+    A, C, rho_s = mat["a"], mat["c"], mat["rho_s"]
+    sq = np.sqrt(I1p)
+    a0 = 2.5 * A * I1p**1.5
+    k = 0.5 * C * sq * dt * g
+    lim = 4.0 * (a0 + k) * sq / C
+    pull = np.where(I2 > lim, np.sqrt(lim / np.where(I2 > 0, I2, 1.0)), 1.0)
+    I2 = np.minimum(I2, lim)
+    f = return_factor_np(a0, 0.5 * C * I2 / sq, k)
+    I2 = I2 * f**2
+    cap = mat["capr"] * I1p
+    f = f * pull * np.where(I2 > cap**2, cap / np.sqrt(np.where(I2 > 0, I2, 1.0)), 1.0)
+    I2 = np.minimum(I2, cap**2)
+    E0 = E0 * f[:, None, None]
+    rho = mat["f"] * rho_s / J
+    pe = 2.5 * A * I1p**1.5 + 0.5 * C * I2 / sq
+    dbar = phi * mat["ds"] + (1.0 - phi) * mat["dl"]
+    inertial = gdot * dbar / np.sqrt(pe / rho_s)
+    c = np.sqrt((3.75 * A + 2.0 * C) * sq / rho)
+    zeta = mat["zeta"] * rho * c * mat["h"]
+    sig = (-pe[:, None, None] * eye + (C * sq)[:, None, None] * E0
+           + (zeta * tr(d)[:, 0, 0])[:, None, None] * eye)  # fmt: skip
+    drv = int(mat["driver"])
+    if drv == DRIVER_A:
+        S = mat["ngf_b"] * inertial * pe
+    elif drv == DRIVER_B:
+        S = mat["kappa_t"] * rho * (gdot * dbar) ** 2
+    elif drv == DRIVER_C:
+        S = np.zeros_like(pe)
+    elif drv == DRIVER_P:
+        S = pe.copy()
+    else:
+        S = mat["kappa_g"] * rho * (g * dbar) ** 2
+    S = S * mat["kappa"]
+    nu = zeta / rho
+    enew = E0 - (I1 / 3.0)[:, None, None] * eye
+    out = {"eps": mat_to_sym(enew), "sig": mat_to_sym(sig), "pe": pe, "gdot": gdot,
+           "inertial": inertial, "S": S, "c": c, "nu": nu}  # fmt: skip
+    for key, v in out.items():
+        if key == "gdot":
             continue
         v[gas] = 0.0
     out["eps"][gas, :3] = (-I1[gas] / 3.0)[:, None]

@@ -3,7 +3,9 @@
 * ``chute``: a periodic layer of depth H on a slope θ, no-slip (or frictional) base at y = 0.
   2-D: the sidewalls are the Coulomb body force of Jop et al. 2005. 3-D: two resolved walls at
   z = 0 and z = W with Coulomb friction μ_w = ``boundary.sidewall_friction`` on the nodes at and
-  beyond them; with ``geometry.mirror`` only 0 ≤ z ≤ W/2 is modelled, with a symmetry plane at
+  beyond them (with ``boundary.sidewall_slip_speed`` u_w > 0, the speed-dependent law
+  μ_w(u) = μ_w0 + (μ_w − μ_w0) u/(u + u_w) of the sliding speed u, μ_w0 =
+  ``boundary.sidewall_friction_slow``; K_w is not used: the walls' normal stress is resolved); with ``geometry.mirror`` only 0 ≤ z ≤ W/2 is modelled, with a symmetry plane at
   z = W/2.
 * ``collapse``: 2-D the column L₀ × H₀ against the wall x = 0; 3-D an axisymmetric column of
   radius r₀ = ``geometry.column_width`` and height H₀ = ``geometry.column_height`` on a rough base,
@@ -21,7 +23,7 @@ import numpy as np
 
 from ..config import Config
 from ..materials import pack_material
-from ..materials.params import M_KIND
+from ..materials.params import KIND_FEI2016_NGF, M_KIND
 from ..mpm.params import TRANSFER_AFLIP, TRANSFER_APIC
 from ..scenarios.builders import GHOST, _initial_strain, gravity_vector, wave_speed_floor
 from .records import CLOCK, CONC, PARAMS, PLANE_CODES, Grid, Points, Segregation, material_record
@@ -128,8 +130,11 @@ def build_chute(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray]:
         raise ValueError(f"the modelled width {wm} must be a whole number of cells of {h}")
     x, vol = lattice((0.0, 0.0, 0.0), (nx * h, g.depth, wm), s)
     prm = _params(cfg, 3, (0.0, -GHOST * h, -GHOST * h), (nx, ny, _nz_walls(wm, h)), True)
-    mu = cfg.boundary.sidewall_friction
-    wall = PLANE_CODES["friction"] if mu > 0 else PLANE_CODES["slip"]
+    b = cfg.boundary
+    mu = b.sidewall_friction
+    wall = PLANE_CODES["friction"] if (mu > 0 or b.sidewall_slip_speed > 0) else PLANE_CODES["slip"]
+    if b.sidewall_slip_speed > 0:  # the speed-dependent wall law of the grain calibration
+        prm["wall_mu0"], prm["wall_speed"] = b.sidewall_friction_slow, b.sidewall_slip_speed
     prm["zlo_kind"], prm["zlo"], prm["zlo_mu"] = wall, 0.0, mu
     prm["zhi_kind"], prm["zhi"], prm["zhi_mu"] = (
         (PLANE_CODES["symmetry"], wm, 0.0) if g.mirror else (wall, wm, mu)
@@ -232,7 +237,7 @@ def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
     pts = Points(
         x=np.ascontiguousarray(x), v=np.zeros((dim, n)), C=np.zeros((dim * dim, n)),
         mass=mass, vol0=vol0, J=np.ascontiguousarray(J, dtype=np.float64), eps=eps,
-        sig=np.zeros((ne, n)), phi=np.full(n, cfg.mixture.phi_small_initial),
+        sig=np.zeros((ne, n)), phi=np.full(n, cfg.mixture.phi_small_initial), gf=np.zeros(n),
         diag=np.zeros((6, n)), s_int=np.zeros(n), g_int=np.zeros(n),
         lg=np.zeros((dim * dim, n)), flags=np.zeros(n, dtype=np.int64),
         cursor=np.zeros(n, dtype=np.int64),
@@ -241,11 +246,13 @@ def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
     from .codegen import kernels
 
     k = kernels(dim)
+    nonlocal_ = mp[M_KIND] == KIND_FEI2016_NGF
     nslabs = max(1, (nodes[1] + k.SLAB - 1) // k.SLAB)
     grid = Grid(
         nodes=np.zeros((*nodes, k.NF)), gv=np.zeros((*nodes, k.NV)),
         slab_start=np.zeros(nslabs + 1, dtype=np.int64), order=np.zeros(n, dtype=np.int64),
         bounds=np.zeros(max(1, threads) + 1, dtype=np.int64),
+        fw=np.zeros((k.NW, *(nodes if nonlocal_ else (1, 1, 1)))),
     )  # fmt: skip
     clock = np.zeros(1, dtype=CLOCK)
     seg = segregation_grid(cfg, prm, x, k.N_CWORK)

@@ -7,7 +7,7 @@ Outputs of a 3-D run in OUT_DIR, besides run.json, config.toml and checkpoint/:
 
 * ``profiles.nc`` – depth profiles averaged over the length and the (modelled) width;
 * ``cross_section.nc`` – maps across the channel, (time, y, z): ``velocity_x``, ``phi_small``,
-  ``solid_fraction``, ``pressure``, ``shear_rate`` on cells of ``output.profile_bin`` in y and
+  ``solid_fraction``, ``pressure``, ``shear_rate``, ``fluidity`` on cells of ``output.profile_bin`` in y and
   one grid cell in z, averaged along x;
 * ``fields/`` – the points with their 3-D positions (VTK ``.vtu`` + ``.pvd``);
 * ``figures/`` – the depth profiles and the cross-channel maps.
@@ -41,6 +41,7 @@ CROSS_VARIABLES = {
     "solid_fraction": ("1", "solid volume fraction f"),
     "pressure": ("Pa", "elastic pressure p_e"),
     "shear_rate": ("s-1", "shear rate γ̇"),
+    "fluidity": ("s-1", "granular fluidity g: the nonlocal state g, or γ̇/μ of a local run"),
 }
 
 
@@ -236,9 +237,7 @@ class EngineSimulation(Simulation):
             with np.errstate(invalid="ignore", divide="ignore"):
                 return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
 
-        mu = stress_ratio(P.sig, P.diag[D_PRESSURE])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            g = np.where(mu > 0, P.diag[D_SHEAR_RATE] / np.where(mu > 0, mu, 1.0), 0.0)
+        mu, g = self._fluidity()
         out = {
             "phi_small": avg(P.phi, wv),
             "velocity_x": avg(P.v[0], wm),
@@ -257,6 +256,16 @@ class EngineSimulation(Simulation):
         out["solid_fraction"] = (np.where(solid > 0, solid / (area * np.diff(self.edges)), np.nan)
                                  if area else np.full(nb, np.nan))  # fmt: skip
         return out
+
+    def _fluidity(self) -> tuple[np.ndarray, np.ndarray]:
+        """(μ, g) of every point: the stress ratio and the fluidity (the state g of a nonlocal
+        run, γ̇/μ of a local one; as analysis.profiles.point_fluidity)."""
+        P = self.engine.points
+        mu = stress_ratio(P.sig, P.diag[D_PRESSURE])
+        if self.config.material.rheology == "nonlocal":
+            return mu, P.gf.copy()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return mu, np.where(mu > 0, P.diag[D_SHEAR_RATE] / np.where(mu > 0, mu, 1.0), 0.0)
 
     def cross_section(self) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Maps across the channel (y bins × z cells), averaged along x: (y, z, fields)."""
@@ -286,6 +295,7 @@ class EngineSimulation(Simulation):
             "phi_small": avg(P.phi, wv),
             "pressure": avg(P.diag[D_PRESSURE], wv),
             "shear_rate": avg(P.diag[D_SHEAR_RATE], wv),
+            "fluidity": avg(self._fluidity()[1], wv),
         }
         solid = np.bincount(cell, weights=wm / self.config.material.grain_density,
                             minlength=ny * nz).reshape(ny, nz)  # fmt: skip
@@ -318,13 +328,14 @@ class EngineSimulation(Simulation):
             self._cross.append((t, self.cross_section()[2]))
             write_netcdf(self.out_dir / "cross_section.nc", self._cross_dataset())
         if self.config.output.fields:
-            mu = stress_ratio(P.sig, P.diag[D_PRESSURE])
+            mu, g = self._fluidity()
             data = {"velocity_x": P.v[0], "velocity_y": P.v[1],
                     "velocity_z": P.v[2] if self.dim == 3 else np.zeros(self.engine.n),
                     "phi_small": P.phi, "pressure": P.diag[D_PRESSURE],
                     "shear_rate": P.diag[D_SHEAR_RATE], "inertial_number": P.diag[D_INERTIAL],
                     "segregation_driver": P.diag[D_DRIVER], "sigma_xy": P.sig[XY],
-                    "sigma_yy": P.sig[YY], "J": P.J, "stress_ratio": mu}  # fmt: skip
+                    "sigma_yy": P.sig[YY], "J": P.J, "stress_ratio": mu,
+                    "fluidity": g}  # fmt: skip
             if self.dim == 3:
                 data["sigma_yz"] = P.sig[YZ]
             z = P.x[2] if self.dim == 3 else np.zeros(self.engine.n)
@@ -355,7 +366,8 @@ class EngineSimulation(Simulation):
             "last_dt": float(self.clock["dt"]), "conservation": self.conservation(),
             "segregation": self.segregation_diagnostics(), "threads": self.threads,
             "threads_policy": self.threads_reason, "threading_layer": threading_layer(),
-            "concentration_steps": int(self.clock["nseg"]), "fluidity_updates": 0,
+            "concentration_steps": int(self.clock["nseg"]),
+            "fluidity_updates": int(self.clock["nflu"]),
             "rheology": self.config.material.rheology,
         }  # fmt: skip
         if failure is not None:

@@ -208,18 +208,25 @@ def local_fluidity(mu, p, dbar, rho_s, mu_s, b, p_min=0.0):
 @njit(cache=True, error_model="numpy", inline="always")
 def relax_local(g, mu, p, dbar, dt, prm):
     """The local part t₀ dg/dt = (μ − μ_s) g − b μ √(ρ_s d̄²/p̃) g² over ``dt`` (p̃ = max(p, p_min),
-    ``M_PFLOOR``), exactly for μ and
+    ``M_PFLOOR``), exactly for μ and p frozen (:func:`relax_logistic` with the coefficients of
+    the packed record ``prm``)."""
+    return relax_logistic(g, mu, p, dbar, dt, prm[M_RHO_S], prm[M_MU_S], prm[M_T0],
+                          prm[M_NGF_B], prm[M_PFLOOR])  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def relax_logistic(g, mu, p, dbar, dt, rho_s, mu_s, t0, b, p_floor):
+    """The local part t₀ dg/dt = (μ − μ_s) g − b μ √(ρ_s d̄²/p̃) g² over ``dt`` (p̃ = max(p, p_min)),
+    exactly for μ and
     p frozen (a logistic equation: g → g_loc for μ > μ_s, g → 0 otherwise, monotonically and
     without a step limit). Disconnected material (p ≤ 0) has g = 0. A point with μ > μ_s and
-    g = 0 starts from ``SEED_FRACTION`` g_loc."""
+    g = 0 starts from ``SEED_FRACTION`` g_loc. Scalar coefficients, so that the 2-D engine
+    (packed record) and the generic engine (named record) share it."""
     if not (p > 0.0):
         return 0.0
     if g != g:
         return g  # NaN propagates to the engine's check
-    rho_s = prm[M_RHO_S]
-    mu_s = prm[M_MU_S]
-    t0 = prm[M_T0]
-    k = prm[M_NGF_B] * mu * dbar * math.sqrt(rho_s / max(p, prm[M_PFLOOR])) / t0
+    k = b * mu * dbar * math.sqrt(rho_s / max(p, p_floor)) / t0
     lam = (mu - mu_s) / t0
     if g < 0.0:
         g = 0.0
