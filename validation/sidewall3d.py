@@ -18,6 +18,17 @@ with COMMON = --set material.rheology='"local"' --set segregation.model='"none"'
 validation/results/sidewall3d/summary.json and sidewall3d.png:
 
     python validation/sidewall3d.py [--times 0.5 1 2 5]
+
+The same question with the default, grain-calibrated model (nonlocal fluidity, the measured wall
+law μ_w(u) — on the resolved walls in 3-D, as the body force in 2-D — and the liu_henann flux):
+
+    segmpm run --out validation/results/sidewall3d/nl_body2d_h1mm <NL>
+    segmpm run --out validation/results/sidewall3d/nl_walls3d_h1mm <NL> \
+        --set geometry.dimension=3 --set geometry.mirror=true
+    python validation/sidewall3d.py --prefix nl_     # summary_nl.json, sidewall3d_nl.png
+
+with NL = --set grid.cell_size=0.001 --set geometry.length=0.002 --set time.end=5
+--set output.profile_times=[0.0,0.5,1.0,2.0,3.0,4.0,5.0] --set output.fields=false.
 """
 
 from __future__ import annotations
@@ -108,12 +119,12 @@ def _phi_stats(y, phi, f, y_dem, phi_dem, top):
     return float(np.mean(phi[sel])), float(rms), float(1.0 - rms / mixed)
 
 
-def segregation_rows(ref, win, times) -> list[dict]:
-    """The runs with the seed's segregation step (seg_body2d_h1mm, seg_walls3d_h1mm), if there."""
-    runs = {"body_force_2d": RES / "seg_body2d_h1mm", "walls_3d": RES / "seg_walls3d_h1mm"}
+def segregation_rows(ref, win, times, prefix="seg_") -> list[dict]:
+    """The runs with a segregation step (<prefix>body2d_h1mm, <prefix>walls3d_h1mm), if there."""
+    runs = {"body_force_2d": RES / f"{prefix}body2d_h1mm", "walls_3d": RES / f"{prefix}walls3d_h1mm"}
     data = {k: xr.open_dataset(d / "profiles.nc").load() for k, d in runs.items()
             if (d / "profiles.nc").exists()}  # fmt: skip
-    cross = RES / "seg_walls3d_h1mm" / "cross_section.nc"
+    cross = RES / f"{prefix}walls3d_h1mm" / "cross_section.nc"
     c3 = xr.open_dataset(cross).load() if cross.exists() else None
     out = []
     for t in times:
@@ -158,10 +169,15 @@ def segregation_rows(ref, win, times) -> list[dict]:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--times", type=float, nargs="+", default=[0.5, 1.0, 2.0, 5.0])
+    ap.add_argument("--prefix", default="",
+                    help="run-name prefix: '' the local model's flow runs (their segregation "
+                         "runs are seg_*), 'nl_' the default nonlocal model's runs (segregation "
+                         "on, liu_henann), written by the commands of docs/validation.md §4")  # fmt: skip
     args = ap.parse_args()
-    p2 = xr.open_dataset(RES / "body2d_h1mm" / "profiles.nc").load()
-    p3 = xr.open_dataset(RES / "walls3d_h1mm" / "profiles.nc").load()
-    c3 = xr.open_dataset(RES / "walls3d_h1mm" / "cross_section.nc").load()
+    pre = args.prefix
+    p2 = xr.open_dataset(RES / f"{pre}body2d_h1mm" / "profiles.nc").load()
+    p3 = xr.open_dataset(RES / f"{pre}walls3d_h1mm" / "profiles.nc").load()
+    c3 = xr.open_dataset(RES / f"{pre}walls3d_h1mm" / "cross_section.nc").load()
     import pandas as pd
 
     ref = pd.read_csv(DEM / "reference_profiles_dense.csv", comment="#")
@@ -222,12 +238,13 @@ def main() -> None:
         rows.append(row)
         print(json.dumps({k: ({kk: vv for kk, vv in v.items() if kk != "surface_u_across"}
                               if isinstance(v, dict) else v) for k, v in row.items()}))  # fmt: skip
-    seg = segregation_rows(ref, win, times)
+    seg = segregation_rows(ref, win, times, pre if pre else "seg_")
     axes[0, 0].legend(fontsize=7)
     axes[1, 0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(RES / "sidewall3d.png", dpi=110)
-    (RES / "summary.json").write_text(json.dumps({"flow": rows, "segregation": seg}, indent=1))
+    tag = f"_{pre.rstrip('_')}" if pre else ""
+    fig.savefig(RES / f"sidewall3d{tag}.png", dpi=110)
+    (RES / f"summary{tag}.json").write_text(json.dumps({"flow": rows, "segregation": seg}, indent=1))
 
 
 if __name__ == "__main__":

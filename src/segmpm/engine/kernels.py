@@ -1095,6 +1095,103 @@ def _fluidity_p2g(P, fw, prm):
                     fw[W_MPHI, i, j, k] += w * mf
 
 
+@njit(cache=True, error_model="numpy")
+def fluidity_planes(prm):
+    """The zero-flux planes of the fluidity that lie on a node plane (slip, Coulomb and symmetry
+    planes: the base, x = xlo, xhi if x is not periodic, z = zlo, zhi in 3-D), rows (axis, node
+    index of the plane, side −1 below / +1 above). The fluidity is extended evenly across them
+    (image nodes, :func:`fold_fluidity`), so that a node on the plane has the full control volume
+    and its faces along the plane the full area."""
+    pr = prm[0]
+    out = np.full((5, 3), -1, dtype=np.int64)
+    r = 0
+    kinds = (pr.base_kind, pr.xlo_kind, pr.xhi_kind, pr.zlo_kind, pr.zhi_kind)
+    where = (pr.base_y, pr.xlo, pr.xhi, pr.zlo, pr.zhi)
+    axes = (1, 0, 0, 2, 2)
+    sides = (-1, -1, 1, -1, 1)
+    for q in range(5):
+        a = axes[q]
+        if kinds[q] == BC_OPEN or kinds[q] == BC_NOSLIP:
+            continue
+        if (a == 0 and pr.periodic_x != 0) or (a == 2 and D != 3):
+            continue
+        k = _plane_node(where[q], pr.origin[a], pr.h, pr.nodes[a])
+        if k < 0:
+            continue
+        out[r, 0] = a
+        out[r, 1] = k
+        out[r, 2] = sides[q]
+        r += 1
+    return out[:r]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _image_of(i, j, k, axis, kw, side, nx, ny, nz):
+    """(i, j, k) of the mirror of a node behind the plane, or (−1, −1, −1)."""
+    mi = _mirror_index(i, j, k, axis, kw, side)
+    if mi < 0:
+        return -1, -1, -1
+    im, jm, km = i, j, k
+    if axis == 0:
+        im = mi
+    elif axis == 1:
+        jm = mi
+    else:
+        km = mi
+    if im < 0 or im >= nx or jm < 0 or jm >= ny or km < 0 or km >= nz:
+        return -1, -1, -1
+    return im, jm, km
+
+
+@njit(cache=True, error_model="numpy")
+def fold_fluidity(fw, planes):
+    """Even extension of the P2G sums across the zero-flux planes: a node behind a plane adds
+    its sums to its mirror node; a node on the plane doubles its own (its mirror is itself) —
+    the sums of the material and its mirror image. Then, once every plane is folded, each node
+    behind a plane takes its mirror's sums (so that two planes a few cells apart, or a corner,
+    see the folded values)."""
+    nx, ny, nz = fw.shape[1], fw.shape[2], fw.shape[3]
+    for r in range(planes.shape[0]):
+        axis, kw, side = planes[r, 0], planes[r, 1], planes[r, 2]
+        for i in range(nx):
+            for j in range(ny):
+                for k in range(nz):
+                    c = i if axis == 0 else (j if axis == 1 else k)
+                    if c == kw:
+                        for f in (W_M, W_MG, W_MPHI):
+                            fw[f, i, j, k] *= 2.0
+                        continue
+                    im, jm, km = _image_of(i, j, k, axis, kw, side, nx, ny, nz)
+                    if im < 0:
+                        continue
+                    for f in (W_M, W_MG, W_MPHI):
+                        fw[f, im, jm, km] += fw[f, i, j, k]
+                        fw[f, i, j, k] = 0.0
+    for r in range(planes.shape[0]):
+        axis, kw, side = planes[r, 0], planes[r, 1], planes[r, 2]
+        for i in range(nx):
+            for j in range(ny):
+                for k in range(nz):
+                    im, jm, km = _image_of(i, j, k, axis, kw, side, nx, ny, nz)
+                    if im >= 0:
+                        for f in (W_M, W_MG, W_MPHI):
+                            fw[f, i, j, k] = fw[f, im, jm, km]
+
+
+@njit(cache=True, error_model="numpy")
+def mirror_fluidity(fw, planes):
+    """The nodal g behind the zero-flux planes: that of the mirror nodes (after a sub-step)."""
+    nx, ny, nz = fw.shape[1], fw.shape[2], fw.shape[3]
+    for r in range(planes.shape[0]):
+        axis, kw, side = planes[r, 0], planes[r, 1], planes[r, 2]
+        for i in range(nx):
+            for j in range(ny):
+                for k in range(nz):
+                    im, jm, km = _image_of(i, j, k, axis, kw, side, nx, ny, nz)
+                    if im >= 0 and fw[W_KIND, i, j, k] == K_ACTIVE:
+                        fw[W_G, i, j, k] = fw[W_G, im, jm, km]
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def _rough(kind, at, where, tol, side):
     """True if a node at coordinate ``at`` lies at or beyond a no-slip plane at ``where``."""
@@ -1106,9 +1203,10 @@ def _rough(kind, at, where, tol, side):
 @njit(cache=True, error_model="numpy", parallel=True)
 def _fluidity_nodes(fw, prm, mat):
     """Nodal g, diffusivity, capacity and kind from the P2G sums; returns max D/c (the explicit
-    stability limit). The free surface and the frictional, slip and symmetry planes are
-    zero-flux cut cells (capacity c = clamp(1.5 m/m_full − 0.25, 0, 1)); nodes at and beyond a
-    no-slip plane are Dirichlet nodes (g = 0)."""
+    stability limit). The free surface is a zero-flux cut cell (capacity c = clamp(1.5 m/m_full −
+    0.25, 0, 1)); nodes at and beyond a no-slip plane are Dirichlet nodes (g = 0); the
+    frictional, slip and symmetry planes on node planes are zero-flux by the even extension
+    (``fold_fluidity``)."""
     pr = prm[0]
     m0 = mat[0]
     nx, ny, nz = fw.shape[1], fw.shape[2], fw.shape[3]
@@ -1174,7 +1272,7 @@ def _flux(fw, i, j, k, a, b, c, di, gi):
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def diffuse(fw, prm, dt, dmax):
+def diffuse(fw, prm, dt, dmax, planes):
     """Explicit finite-volume diffusion of the nodal g over ``dt`` in sub-steps below the
     stability limit h²/(2 D max D/c): c_i ∂g_i/∂t = Σ_faces D_f (g_j − g_i)/h² over the 2 D
     neighbours (periodic in x if the grid is). Returns the number of sub-steps."""
@@ -1217,6 +1315,7 @@ def diffuse(fw, prm, dt, dmax):
                 for k in range(nz):
                     if fw[W_KIND, i, j, k] == K_ACTIVE:
                         fw[W_G, i, j, k] += ds * fw[W_LAP, i, j, k] / fw[W_CAP, i, j, k]
+        mirror_fluidity(fw, planes)
     return nsub
 
 
@@ -1302,8 +1401,10 @@ def fluidity_step(P, G, prm, mat, dt):
         for f in (W_M, W_MG, W_MPHI):
             fw[f] = 0.0
         _fluidity_p2g(P, fw, prm)
+        planes = fluidity_planes(prm)
+        fold_fluidity(fw, planes)  # image nodes behind the zero-flux planes
         dmax = _fluidity_nodes(fw, prm, mat)
-        nsub = diffuse(fw, prm, dt, dmax)
+        nsub = diffuse(fw, prm, dt, dmax, planes)
     _fluidity_g2p(P, fw, prm, mat, dt, nsub)
     return nsub
 
