@@ -121,7 +121,10 @@ def _phi_stats(y, phi, f, y_dem, phi_dem, top):
 
 def segregation_rows(ref, win, times, prefix="seg_") -> list[dict]:
     """The runs with a segregation step (<prefix>body2d_h1mm, <prefix>walls3d_h1mm), if there."""
-    runs = {"body_force_2d": RES / f"{prefix}body2d_h1mm", "walls_3d": RES / f"{prefix}walls3d_h1mm"}
+    runs = {
+        "body_force_2d": RES / f"{prefix}body2d_h1mm",
+        "walls_3d": RES / f"{prefix}walls3d_h1mm",
+    }
     data = {k: xr.open_dataset(d / "profiles.nc").load() for k, d in runs.items()
             if (d / "profiles.nc").exists()}  # fmt: skip
     cross = RES / f"{prefix}walls3d_h1mm" / "cross_section.nc"
@@ -244,7 +247,9 @@ def main() -> None:
     fig.tight_layout()
     tag = f"_{pre.rstrip('_')}" if pre else ""
     fig.savefig(RES / f"sidewall3d{tag}.png", dpi=110)
-    (RES / f"summary{tag}.json").write_text(json.dumps({"flow": rows, "segregation": seg}, indent=1))
+    (RES / f"summary{tag}.json").write_text(
+        json.dumps({"flow": rows, "segregation": seg}, indent=1)
+    )
 
 
 if __name__ == "__main__":

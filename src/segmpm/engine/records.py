@@ -184,8 +184,21 @@ class Points(NamedTuple):
 
 
 #: arrays of Points that define the physical state (checkpointed); the rest is work
-POINT_STATE = ("x", "v", "C", "mass", "vol0", "J", "eps", "sig", "phi", "gf", "diag", "s_int",
-               "g_int")
+POINT_STATE = (
+    "x",
+    "v",
+    "C",
+    "mass",
+    "vol0",
+    "J",
+    "eps",
+    "sig",
+    "phi",
+    "gf",
+    "diag",
+    "s_int",
+    "g_int",
+)
 
 
 class Grid(NamedTuple):
