@@ -309,3 +309,26 @@ def test_calibrated_example_matches_the_calibration():
     assert ratio == pytest.approx(1.0, abs=0.06)
     preset = root / "src/segmpm/presets/chute_nonlocal.toml"
     assert preset.read_text() == (root / "examples/chute_nonlocal.toml").read_text()
+
+
+def test_calibrated_3d_example_takes_the_slip_speed_law():
+    """examples/chute_nonlocal_3d.toml is the default case in 3-D with the wall law fitted
+    against the wall slip speed (calibration.json slip_law), the rest the default preset's."""
+    import json
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    cal = json.loads((root / "validation/dem/calibration/calibration.json").read_text())
+    law = cal["wall_friction"]["wall_mu030"]["slip_law"]
+    cfg = load_config(root / "examples/chute_nonlocal_3d.toml")
+    b = cfg.boundary
+    for got, want in ((b.sidewall_friction, law["mu_inf"]), (b.sidewall_friction_slow, law["mu_0"]),
+                      (b.sidewall_slip_speed, law["u_w"])):  # fmt: skip
+        assert got == pytest.approx(want, rel=1e-4)
+    # a sliding grain at the wall moves slower than the width average, so the slip-speed law
+    # reaches a given friction at a lower speed than the width-averaged one
+    assert law["u_w"] < cal["wall_friction"]["wall_mu030"]["u_w"]
+    assert 0.5 < law["slip_over_u_top_4mm"] < 1.0
+    assert cfg.geometry.dimension == 3 and cfg.geometry.mirror
+    two = load_config(preset="chute_nonlocal")
+    assert cfg.material == two.material and cfg.segregation == two.segregation

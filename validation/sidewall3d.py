@@ -119,16 +119,18 @@ def _phi_stats(y, phi, f, y_dem, phi_dem, top):
     return float(np.mean(phi[sel])), float(rms), float(1.0 - rms / mixed)
 
 
-def segregation_rows(ref, win, times, prefix="seg_") -> list[dict]:
-    """The runs with a segregation step (<prefix>body2d_h1mm, <prefix>walls3d_h1mm), if there."""
+def segregation_rows(ref, win, times, prefix="seg_", extra=None) -> list[dict]:
+    """The runs with a segregation step (<prefix>body2d_h1mm, <prefix>walls3d_h1mm and the
+    ``extra`` 3-D runs {label: directory}), if there."""
     runs = {
         "body_force_2d": RES / f"{prefix}body2d_h1mm",
         "walls_3d": RES / f"{prefix}walls3d_h1mm",
+        **(extra or {}),
     }
     data = {k: xr.open_dataset(d / "profiles.nc").load() for k, d in runs.items()
             if (d / "profiles.nc").exists()}  # fmt: skip
-    cross = RES / f"{prefix}walls3d_h1mm" / "cross_section.nc"
-    c3 = xr.open_dataset(cross).load() if cross.exists() else None
+    cross3 = {k: d / "cross_section.nc" for k, d in runs.items() if k != "body_force_2d"}
+    c3s = {k: xr.open_dataset(c).load() for k, c in cross3.items() if c.exists()}
     out = []
     for t in times:
         sel = np.isclose(ref["time_s"].to_numpy(), t)
@@ -149,11 +151,13 @@ def segregation_rows(ref, win, times, prefix="seg_") -> list[dict]:
             _, top = surface_speed(y, ds.velocity_x.sel(time=t).values, f)
             top5, rms, skill = _phi_stats(y, ds.phi_small.sel(time=t).values, f, yd, pd_, top)
             row[name] = {"phi_top5": top5, "phi_rms": rms, "skill": skill}
-        if c3 is not None and t in c3.time.values and "walls_3d" in row:
+        for name, c3 in c3s.items():
+            if t not in c3.time.values or name not in row:
+                continue
             ys = c3.y.values
             top = float(ys[np.isfinite(c3.solid_fraction.sel(time=t).values).any(axis=1)].max())
             band = (ys >= top - 0.005) & (ys <= top)
-            row["walls_3d"]["phi_top5_across"] = np.nanmean(
+            row[name]["phi_top5_across"] = np.nanmean(
                 c3.phi_small.sel(time=t).values[band], axis=0).tolist()  # fmt: skip
         d = dem_at(win, t)
         if d is not None:
@@ -176,11 +180,17 @@ def main() -> None:
                     help="run-name prefix: '' the local model's flow runs (their segregation "
                          "runs are seg_*), 'nl_' the default nonlocal model's runs (segregation "
                          "on, liu_henann), written by the commands of docs/validation.md §4")  # fmt: skip
+    ap.add_argument("--extra", nargs="*", default=[], metavar="LABEL=RUN",
+                    help="further 3-D runs to compare, e.g. walls_3d_mu0.22=nlmu022_walls3d_h1mm "
+                         "(a directory under validation/results/sidewall3d)")  # fmt: skip
     args = ap.parse_args()
     pre = args.prefix
+    extra = {lab: RES / run for lab, run in (e.split("=", 1) for e in args.extra)}
     p2 = xr.open_dataset(RES / f"{pre}body2d_h1mm" / "profiles.nc").load()
-    p3 = xr.open_dataset(RES / f"{pre}walls3d_h1mm" / "profiles.nc").load()
-    c3 = xr.open_dataset(RES / f"{pre}walls3d_h1mm" / "cross_section.nc").load()
+    runs3 = {"walls_3d": RES / f"{pre}walls3d_h1mm", **extra}
+    p3s = {k: xr.open_dataset(d / "profiles.nc").load() for k, d in runs3.items()}
+    c3s = {k: xr.open_dataset(d / "cross_section.nc").load() for k, d in runs3.items()}
+    p3 = p3s["walls_3d"]
     import pandas as pd
 
     ref = pd.read_csv(DEM / "reference_profiles_dense.csv", comment="#")
@@ -191,7 +201,7 @@ def main() -> None:
                              squeeze=False)  # fmt: skip
     for col, t in enumerate(times):
         row: dict = {"time": t}
-        for name, ds in (("body_force_2d", p2), ("walls_3d", p3)):
+        for name, ds in (("body_force_2d", p2), *p3s.items()):
             y = ds.y.values
             u = ds.velocity_x.sel(time=t).values
             f = ds.solid_fraction.sel(time=t).values
@@ -211,14 +221,15 @@ def main() -> None:
         axes[0, col].set_xlabel("u (m/s), width average")
         axes[0, 0].set_ylabel("y (mm)")
         # across the width: the velocity of the top 4 mm of the dense layer
-        top3 = row["walls_3d"]["top"]
-        ys = c3.y.values
-        band = (ys >= top3 - 0.004) & (ys <= top3)
-        u3z = np.nanmean(c3.velocity_x.sel(time=t).values[band], axis=0)
-        z3 = c3.z.values
-        row["walls_3d"]["surface_u_across"] = {"z": z3.tolist(), "u": u3z.tolist()}
-        row["walls_3d"]["wall_to_centre"] = float(u3z[0] / u3z[-1]) if u3z[-1] else None
-        axes[1, col].plot(z3 * 1e3, u3z, "o-", label="3-D walls")
+        for name, c3 in c3s.items():
+            top3 = row[name]["top"]
+            ys = c3.y.values
+            band = (ys >= top3 - 0.004) & (ys <= top3)
+            u3z = np.nanmean(c3.velocity_x.sel(time=t).values[band], axis=0)
+            z3 = c3.z.values
+            row[name]["surface_u_across"] = {"z": z3.tolist(), "u": u3z.tolist()}
+            row[name]["wall_to_centre"] = float(u3z[0] / u3z[-1]) if u3z[-1] else None
+            axes[1, col].plot(z3 * 1e3, u3z, "o-", label=name.replace("_", " "))
         axes[1, col].axhline(row["body_force_2d"]["surface_speed"], color="C0", ls=":",
                              label="2-D body force")  # fmt: skip
         d = dem_at(win, t)
@@ -241,7 +252,7 @@ def main() -> None:
         rows.append(row)
         print(json.dumps({k: ({kk: vv for kk, vv in v.items() if kk != "surface_u_across"}
                               if isinstance(v, dict) else v) for k, v in row.items()}))  # fmt: skip
-    seg = segregation_rows(ref, win, times, pre if pre else "seg_")
+    seg = segregation_rows(ref, win, times, pre if pre else "seg_", extra)
     axes[0, 0].legend(fontsize=7)
     axes[1, 0].legend(fontsize=7)
     fig.tight_layout()

@@ -10,7 +10,9 @@ the data behind every fit) and ``calibration.png``; docs/calibration.md explains
    spread of one-slope-out refits.
 2. **Wall friction** from wall_mu030 / wall_mu015 (flat sidewalls, grain–wall friction 0.3 and
    0.15): the mobilised ratio τ_w/σ_w of the wall stresses against the width-averaged velocity u,
-   fitted by μ_w(u) = μ_0 + (μ_∞ − μ_0) u/(u + u_w); and K_w = σ_w/(−σ_zz).
+   fitted by μ_w(u) = μ_0 + (μ_∞ − μ_0) u/(u + u_w) (the 2-D body force's law); the same law
+   against the grains' sliding speed at the wall (``slip_law``: the resolved walls' law in 3-D);
+   and K_w = σ_w/(−σ_zz).
 3. **Nonlocal amplitude A** from h_stop (hstop_*): each layer of measured thickness H stopped
    between θ_stop and θ_stop + 0.5°; with the linearised NGF,
    H_stop = (π/2) A d̄ / √(tan θ − μ_s), A = 2 H √(tan θ* − μ_s)/(π d̄), θ* the bracket's middle;
@@ -146,6 +148,12 @@ def fit_walls(out):
             return m0 + (minf - m0) * u / (u + uw)
 
         p, c = curve_fit(law, u, r, p0=(0.05, mgw, 0.02), bounds=([0, 0, 1e-5], [1, 1, 1]))
+        # the same law against the grains' own sliding speed at the wall (the mean velocity of
+        # the grains touching it): the variable of a resolved wall in 3-D
+        slip = P["wall_slip"][sel]
+        ok = np.isfinite(slip)
+        ps, cs = curve_fit(law, slip[ok], r[ok], p0=(0.05, mgw, 0.02),
+                           bounds=([0, 0, 1e-5], [1, 1, 1]))  # fmt: skip
         top = P["zeta"][sel] > H - 0.004
         res[name] = dict(
             grain_wall_friction=mgw, surface_m=H,
@@ -153,6 +161,13 @@ def fit_walls(out):
             mu_0=float(p[0]), mu_inf=float(p[1]), u_w=float(p[2]),
             se=[float(v) for v in np.sqrt(np.diag(c))],
             rms_residual=float(np.sqrt(np.mean((r - law(u, *p)) ** 2))),
+            slip_law=dict(
+                law="mu_w(u_s) = mu_0 + (mu_inf - mu_0) u_s/(u_s + u_w), u_s the wall slip speed",
+                mu_0=float(ps[0]), mu_inf=float(ps[1]), u_w=float(ps[2]),
+                se=[float(v) for v in np.sqrt(np.diag(cs))],
+                rms_residual=float(np.sqrt(np.mean((r[ok] - law(slip[ok], *ps)) ** 2))),
+                slip_over_u_top_4mm=float(np.mean(slip[top & ok] / u[top & ok])),
+            ),
             ratio_top_4mm=float(np.mean(r[top])), surface_velocity=float(np.nanmax(u)),
             K_w_mean=float(np.mean(K)), K_w_sd=float(np.std(K)),
             data=dict(zeta=P["zeta"][sel].tolist(), u=u.tolist(), ratio=r.tolist(),
