@@ -168,7 +168,8 @@ def test_frictionless_walls_give_plane_strain():
     """A 3-D chute between frictionless walls is z-invariant: it is the 2-D chute without the
     sidewall force, to round-off (with the image nodes behind the walls, every node layer sees
     the mirror-extended material, whose z stencil sums to one)."""
-    common = ["geometry.depth=0.006", "geometry.width=0.003", "boundary.sidewall_friction=0"]
+    common = ["geometry.depth=0.006", "geometry.width=0.003", "boundary.sidewall_friction=0",
+              "grid.volumetric_smoothing='off'"]  # fmt: skip
     s3 = _run(build(_cfg(common), 3), 0.03)
     s2 = _run(build(_cfg([*common, "geometry.dimension=2"]), 2), 0.03)
     P3, P2 = s3.points, s2.points
@@ -181,6 +182,103 @@ def test_frictionless_walls_give_plane_strain():
     assert np.abs(P3.v[2]).max() < 1e-9 * u_s
     np.testing.assert_allclose(P3.sig[3].reshape(-1, nz)[:, 0], P2.sig[3],
                                atol=1e-8 * np.abs(P2.sig[1]).max())  # fmt: skip
+
+
+def test_frictionless_walls_stay_z_invariant_with_volumetric_smoothing():
+    """The volumetric smoothing keeps a z-invariant state z-invariant:
+    the 3-D chute between frictionless walls has equal columns across the width and no v_z,
+    and it still flows like plane strain (the smoothing only redistributes tr L within a few
+    cells, and the state is uniform along the layer)."""
+    common = ["geometry.depth=0.006", "geometry.width=0.003", "boundary.sidewall_friction=0"]
+    s3 = _run(build(_cfg([*common, "grid.volumetric_smoothing='on'"]), 3), 0.03)
+    s2 = _run(build(_cfg([*common, "geometry.dimension=2"]), 2), 0.03)
+    assert s3.prm[0]["dilatation"] == 1 and s2.prm[0]["dilatation"] == 0
+    P3, P2 = s3.points, s2.points
+    nz = 6
+    u3 = P3.v[0].reshape(-1, nz)
+    u_s = np.abs(u3).max()
+    assert u_s > 1e-3
+    np.testing.assert_allclose(u3, np.repeat(u3[:, :1], nz, axis=1), atol=1e-9 * u_s)
+    np.testing.assert_allclose(P3.J.reshape(-1, nz), np.repeat(P3.J.reshape(-1, nz)[:, :1], nz,
+                                                               axis=1), atol=1e-13)  # fmt: skip
+    assert np.abs(P3.v[2]).max() < 1e-9 * u_s
+    # the same chute in plane strain without the smoothing: the velocities agree to the
+    # smoothing's O(h²) change of the elastic volume strain, far below the flow
+    np.testing.assert_allclose(u3[:, 0], P2.v[0], atol=2e-3 * np.abs(P2.v[0]).max())
+
+
+def _smoothing_state():
+    cfg = _cfg(["geometry.depth=0.010", "geometry.width=0.004", "grid.volumetric_smoothing='on'"])
+    st = build(cfg, 3)
+    assert st.prm[0]["dilatation"] == 1
+    return st, kernels(3)
+
+
+def test_volumetric_smoothing_matches_numpy_reference_and_conserves_the_volume_rate():
+    """smooth_dilatation against its point-by-point NumPy reference, off the lattice with a
+    random L; and Σ m tr L̄ = Σ m tr L (the nodal averages are mass-weighted and every point's
+    weights sum to one), so that the smoothing moves volume change, never creates it."""
+    from segmpm.engine.reference import smooth_dilatation_np
+
+    st, k = _smoothing_state()
+    P, G = st.points, st.grid
+    rng = np.random.default_rng(7)
+    n = st.n
+    P.x[0] = (P.x[0] + rng.uniform(-2e-4, 2e-4, n)) % 0.002
+    P.x[1] += rng.uniform(-2e-4, 2e-4, n)
+    P.x[2] += rng.uniform(-2e-4, 2e-4, n)
+    P.lg[:] = rng.normal(scale=5.0, size=P.lg.shape)
+    P.J[:] = rng.uniform(0.99, 1.01, n)
+    L0 = P.lg.T.reshape(n, 3, 3).copy()
+    J0 = P.J.copy()
+    dt = 1e-4
+    k.smooth_dilatation(P, G, st.prm, dt)
+    prm = st.prm[0]
+    Lref, Jref = smooth_dilatation_np(P.x.T, P.mass, L0, J0, prm["h"], prm["origin"],
+                                      G.nodes.shape[:3], True, dt)  # fmt: skip
+    np.testing.assert_allclose(P.lg.T.reshape(n, 3, 3), Lref, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(P.J, Jref, rtol=1e-14)
+    tr0 = np.trace(L0, axis1=1, axis2=2)
+    tr1 = np.trace(Lref, axis1=1, axis2=2)
+    assert abs((P.mass * tr1).sum() - (P.mass * tr0).sum()) < 1e-12 * (P.mass * abs(tr0)).sum()
+    # the deviatoric part of L is untouched
+    dev = L0 - tr0[:, None, None] / 3 * np.eye(3)
+    np.testing.assert_allclose(Lref - tr1[:, None, None] / 3 * np.eye(3), dev, atol=1e-12)
+
+
+def test_volumetric_smoothing_removes_the_row_mode_and_keeps_linear_fields():
+    """On the lattice of 2 points per cell and axis (equal masses): a volumetric rate that
+    alternates between point rows (the null mode of the B-spline force: the rows' stresses
+    cancel in every nodal force) averages to zero at every node whose stencil is full, and a
+    rate linear in y is reproduced exactly there (the nodal averages of a linear field are its
+    nodal values by symmetry, and quadratic B-splines interpolate linear fields exactly)."""
+    st, k = _smoothing_state()
+    P, G = st.points, st.grid
+    h = st.prm[0]["h"]
+    y = P.x[1]
+    interior = (y > 3 * h) & (y < 0.010 - 3 * h)  # every stencil node has both rows around
+    row = np.rint((y / (h / 2)) - 0.5).astype(int)
+    P.mass[:] = P.mass.mean()  # the geostatic state's masses vary with depth (by < 1e-3)
+    P.lg[:] = 0.0
+    P.lg[0] = 1e-2 * (-1.0) ** row
+    k.smooth_dilatation(P, G, st.prm, 0.0)
+    tr = P.lg[0] + P.lg[4] + P.lg[8]
+    assert np.abs(tr[interior]).max() < 1e-15
+    assert np.abs(tr[~interior]).max() > 1e-4  # near the base and the surface it does not cancel
+    P.lg[:] = 0.0
+    P.lg[4] = 3.0 - 200.0 * y  # tr L = 3 − 200 y, 1/s
+    k.smooth_dilatation(P, G, st.prm, 0.0)
+    tr = P.lg[0] + P.lg[4] + P.lg[8]
+    np.testing.assert_allclose(tr[interior], 3.0 - 200.0 * y[interior], rtol=0, atol=1e-13)
+
+
+def test_volumetric_smoothing_on_in_2d_names_the_key_and_auto_is_nonlocal_3d_only():
+    with pytest.raises(ConfigError, match="grid.volumetric_smoothing"):
+        _cfg(["geometry.dimension=2", "grid.volumetric_smoothing='on'"])
+    small = ["geometry.depth=0.004", "geometry.width=0.002"]
+    assert build(_cfg(small), 3).prm[0]["dilatation"] == 0  # local rheology
+    assert build(_nl_cfg(small), 3).prm[0]["dilatation"] == 1
+    assert build(_nl_cfg(small, dim=2), 2).prm[0]["dilatation"] == 0
 
 
 def test_resolved_wall_coulomb_friction_sliding_block():
@@ -551,7 +649,8 @@ def test_nonlocal_chute_between_frictionless_walls_is_plane_strain():
     explicit limit h²/(2 D D_max) allows fewer in 2-D)."""
     common = ["geometry.depth=0.006", "geometry.width=0.003", "boundary.sidewall_friction=0",
               "boundary.sidewall_slip_speed=0", "segregation.model='none'",
-              "material.fluidity_dt=1e-5", "time.dt_max=1e-5"]  # fmt: skip
+              "material.fluidity_dt=1e-5", "time.dt_max=1e-5",
+              "grid.volumetric_smoothing='off'"]  # fmt: skip
     t_end = 0.040125  # half-way between two fluidity updates (every 2.5e-4 s): no tie
     s3 = _run(build(_nl_cfg(common), 3), t_end)
     s2 = _run(build(_nl_cfg(common, dim=2), 2), t_end)

@@ -28,7 +28,19 @@ law μ_w(u) — on the resolved walls in 3-D, as the body force in 2-D — and t
     python validation/sidewall3d.py --prefix nl_     # summary_nl.json, sidewall3d_nl.png
 
 with NL = --set grid.cell_size=0.001 --set geometry.length=0.002 --set time.end=5
---set output.profile_times=[0.0,0.5,1.0,2.0,3.0,4.0,5.0] --set output.fields=false.
+--set output.profile_times=[0.0,0.5,1.0,2.0,3.0,4.0,5.0] --set output.fields=false. Further 3-D
+runs join the tables with --extra LABEL=RUN:
+
+    segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/nlslip_walls3d_h1mm \
+        --set time.end=5 --set output.profile_times=[0.0,0.5,1.0,2.0,3.0,4.0,5.0] --set output.fields=false
+    python validation/sidewall3d.py --prefix nl_ --times 0.5 1 2 3 5 \
+        --extra walls_3d_slip_law=nlslip_walls3d_h1mm walls_3d_mu0.22=nlmu022_walls3d_h1mm
+
+(the wall law fitted against the DEM's wall slip speed, and the mobilised constant μ_w = 0.22,
+docs/calibration.md §2). Every 3-D run above uses the volumetric smoothing (grid.volumetric_smoothing
+= "auto", on in 3-D; docs/model.md §2) unless its config.toml says otherwise; the runs
+nosmooth_nlflow*_walls3d_h1mm are the flow-only (segregation.model = "none") diagnostics made
+before it existed, i.e. with --set grid.volumetric_smoothing='"off"'.
 """
 
 from __future__ import annotations
@@ -105,6 +117,19 @@ def flowing_depth(y: np.ndarray, u: np.ndarray, top: float, us: float) -> float:
     ys, uu = y[ok][::-1], u[ok][::-1]
     below = np.nonzero(uu < 0.05 * us)[0]
     return float(top - ys[below[0]]) if below.size else float(top - ys[-1])
+
+
+def row_roughness(y: np.ndarray, sn: np.ndarray, top: float, band: float = 0.008) -> float:
+    """Point-row noise of the normal stress over the top ``band`` of the dense layer: the RMS of
+    σ_n − (its two neighbours' mean) over the mean σ_n, on the 0.5 mm bins (one bin per point row
+    at h = 1 mm, 2 points per cell: a smooth profile gives ≈ 0, the row mode of docs/model.md §2
+    a large value)."""
+    sel = np.isfinite(sn) & (y >= top - band) & (y <= top - 0.001)
+    v = sn[sel]
+    if v.size < 3:
+        return float("nan")
+    r = v[1:-1] - 0.5 * (v[:-2] + v[2:])
+    return float(np.sqrt(np.mean(r**2)) / np.mean(v[1:-1]))
 
 
 def _phi_stats(y, phi, f, y_dem, phi_dem, top):
@@ -206,8 +231,13 @@ def main() -> None:
             u = ds.velocity_x.sel(time=t).values
             f = ds.solid_fraction.sel(time=t).values
             us, top = surface_speed(y, u, f)
+            sn = ds.normal_stress.sel(time=t).values
+            mu = ds.stress_ratio.sel(time=t).values
+            top4 = (y >= top - 0.004) & (y <= top)
             row[name] = {"surface_speed": us, "top": top,
-                         "flowing_depth": flowing_depth(y, u, top, us)}  # fmt: skip
+                         "flowing_depth": flowing_depth(y, u, top, us),
+                         "row_roughness_top8mm": row_roughness(y, sn, top),
+                         "stress_ratio_top4mm": float(np.nanmean(mu[top4]))}  # fmt: skip
             axes[0, col].plot(u, y * 1e3, label=name.replace("_", " "))
         sel = np.isclose(ref["time_s"].to_numpy(), t)
         if sel.any():

@@ -86,6 +86,13 @@ class GridConfig(_Section):
     transfer: Literal["aflip", "apic", "flip"] = "aflip"
     #: FLIP fraction α of the velocity update (transfer = "aflip" or "flip").
     flip_fraction: Fraction = 0.99
+    #: volumetric smoothing: each point's volumetric rate tr L replaced by its mass-weighted
+    #: average over the grid (mapped to the nodes and back), so that the points of a cell share
+    #: one rate of J. It removes the null mode of 2 points per cell and axis (alternate point
+    #: rows compressed and dilated) that grows in 3-D near the free surface (docs/model.md §2,
+    #: "Volumetric smoothing"). "auto": on for the nonlocal rheology in 3-D, where it was shown
+    #: to help, else off; "on" needs geometry.dimension = 3.
+    volumetric_smoothing: Literal["auto", "on", "off"] = "auto"
     #: threads of the compiled loop: "auto" (one below 20 000 points, else the cores this process
     #: may use that no other process keeps busy; segmpm.threads) or a count (0 = numba's pool).
     #: Results do not depend on it.
@@ -404,6 +411,11 @@ class Config(_Section):
             )
         if g.dimension == 3:
             self._check_3d()
+        elif self.grid.volumetric_smoothing == "on":
+            raise ValueError(
+                "grid.volumetric_smoothing = 'on' needs geometry.dimension = 3 (the 2-D engine "
+                "has no volumetric smoothing); allowed in 2-D: 'auto', 'off'"
+            )
         if self.time.dt_min >= self.time.dt_max:
             raise ValueError(
                 f"time.dt_min = {self.time.dt_min} must be smaller than time.dt_max = {self.time.dt_max}"

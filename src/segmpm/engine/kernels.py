@@ -14,7 +14,8 @@ Order of a step (:func:`advance`, docs/architecture.md):
    a wall folded onto their mirror nodes (image nodes);
 3. grid update: v* = (m v + Δt (f + m g))/m, the 2-D sidewall body force, the boundary planes;
    and the image nodes' velocities from their mirrors;
-4. G2P: APIC/AFLIP velocity, affine matrix C, velocity gradient L, advection, J;
+4. G2P: APIC/AFLIP velocity, affine matrix C, velocity gradient L, advection, J; with the
+   volumetric smoothing, tr L mapped to the grid and back before J;
 5. material law (Fei et al. 2016, Jiang–Liu elasticity + yield cap + μ(I), or the fluidity flow
    rule of the nonlocal rheology) and the step check; with the nonlocal rheology, every
    ``material.fluidity_dt`` the fluidity update (diffusion on the grid, local relaxation);
@@ -671,7 +672,8 @@ def _inside(xi, yi, zi, nx, ny, nz, periodic):
 
 @njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
 def g2p(P, G, prm, dt, nslabs):
-    """G2P (APIC, or AFLIP: the FLIP increment blended with α), advection, C = (4/h²) B, L, J."""
+    """G2P (APIC, or AFLIP: the FLIP increment blended with α), advection, C = (4/h²) B, L, J
+    (J later, from the smoothed L, with ``prm.dilatation``)."""
     ny = G.gv.shape[1]
     nz = G.gv.shape[2]
     gvf = G.gv.reshape(G.gv.size)
@@ -680,6 +682,7 @@ def g2p(P, G, prm, dt, nslabs):
     k4 = 4.0 * ih * ih
     aflip = pr.transfer == TRANSFER_AFLIP
     alpha = pr.flip
+    smooth = pr.dilatation != 0
     lx = pr.length_x
     periodic = pr.periodic_x != 0
     # scalars out of the record before the parallel loop (a record's array fields read inside
@@ -741,11 +744,122 @@ def g2p(P, G, prm, dt, nslabs):
             lg[1, p] = lxy
             lg[2, p] = lyx
             lg[3, p] = lyy
-        J[p] = det_update(J[p], dt, lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz)
+        if not smooth:  # else J is advanced with the smoothed L (smooth_dilatation)
+            J[p] = det_update(J[p], dt, lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz)
         ok = math.isfinite(xn + yn + zn) and _inside((xn - x0) * ih, (yn - y0) * ih,
                                                      (zn - z0) * ih, nx, ny_, nz_, periodic)  # fmt: skip
         flags[p] = ST_OK if ok else ST_LEFT_GRID
         cursor[p] = slab_of(yn, y0, ih, nslabs)
+
+
+# ---------------------------------------------------------------------------------------------
+# 4b. volumetric smoothing: the double mapping of the volumetric rate tr L (docs/model.md,
+#     "Volumetric smoothing"; González Acosta et al. 2020 map the stress the same way)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _trace(lg, p):
+    """tr L of point p (the in-plane trace in 2-D plane strain)."""
+    if D == 3:
+        return lg[0, p] + lg[4, p] + lg[8, p]
+    return lg[0, p] + lg[3, p]
+
+
+@njit(cache=True, error_model="numpy")
+def _dilatation_p2g(P, fw, prm):
+    """P2G of m and m tr L into ``fw[W_M]``, ``fw[W_MG]`` (serial: the nodes receive their sums
+    in point order, so that the result does not depend on the thread count)."""
+    pr = prm[0]
+    ih = 1.0 / pr.h
+    nx = pr.nodes[0]
+    periodic = pr.periodic_x != 0
+    x0 = pr.origin[0]
+    y0 = pr.origin[1]
+    z0 = pr.origin[2]
+    x = P.x
+    mass = P.mass
+    lg = P.lg
+    for p in range(x.shape[1]):
+        bx, wx0, wx1, wx2, _, _, _, _ = bspline2_frac((x[0, p] - x0) * ih)
+        by, wy0, wy1, wy2, _, _, _, _ = bspline2_frac((x[1, p] - y0) * ih)
+        zp = x[2, p] if D == 3 else 0.0
+        bz, wz0, wz1, wz2, _, _, _, _ = _z_axis(zp, z0, ih)
+        wx = (wx0, wx1, wx2)
+        wy = (wy0, wy1, wy2)
+        wz = (wz0, wz1, wz2)
+        m = mass[p]
+        mt = m * _trace(lg, p)
+        for a in range(3):
+            i = _wrap(bx + a, nx) if periodic else bx + a
+            for b in range(3):
+                j = by + b
+                wab = wx[a] * wy[b]
+                for c in range(SZ):
+                    k = bz + c
+                    w = wab * wz[c]
+                    fw[W_M, i, j, k] += w * m
+                    fw[W_MG, i, j, k] += w * mt
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _dilatation_g2p(P, fw, prm, dt):
+    """Each point's tr L replaced by the interpolation of the nodal averages
+    Σ_p w m tr L / Σ_p w m (the deviatoric part of L untouched: the isotropic correction
+    (tr L̄ − tr L)/D on the diagonal), then J ← J det(I + Δt L̄)."""
+    pr = prm[0]
+    ih = 1.0 / pr.h
+    nx = pr.nodes[0]
+    periodic = pr.periodic_x != 0
+    x0 = pr.origin[0]
+    y0 = pr.origin[1]
+    z0 = pr.origin[2]
+    x = P.x
+    lg = P.lg
+    J = P.J
+    for p in prange(x.shape[1]):
+        bx, wx0, wx1, wx2, _, _, _, _ = bspline2_frac((x[0, p] - x0) * ih)
+        by, wy0, wy1, wy2, _, _, _, _ = bspline2_frac((x[1, p] - y0) * ih)
+        zp = x[2, p] if D == 3 else 0.0
+        bz, wz0, wz1, wz2, _, _, _, _ = _z_axis(zp, z0, ih)
+        wx = (wx0, wx1, wx2)
+        wy = (wy0, wy1, wy2)
+        wz = (wz0, wz1, wz2)
+        num = 0.0
+        wsum = 0.0
+        for a in range(3):
+            i = _wrap(bx + a, nx) if periodic else bx + a
+            for b in range(3):
+                j = by + b
+                wab = wx[a] * wy[b]
+                for c in range(SZ):
+                    k = bz + c
+                    m = fw[W_M, i, j, k]
+                    if m > 0.0:
+                        w = wab * wz[c]
+                        num += w * fw[W_MG, i, j, k] / m
+                        wsum += w
+        if wsum > 0.0:
+            d = (num / wsum - _trace(lg, p)) / D
+            lg[0, p] += d
+            if D == 3:
+                lg[4, p] += d
+                lg[8, p] += d
+            else:
+                lg[3, p] += d
+        lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz = _mat(lg, p)
+        J[p] = det_update(J[p], dt, lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz)
+
+
+@njit(cache=True, error_model="numpy")
+def smooth_dilatation(P, G, prm, dt):
+    """The volumetric smoothing of ``prm.dilatation``: tr L mapped to the grid and back, so that
+    the points of a cell share one volumetric rate (the null mode of 2 points per cell and
+    axis, alternate rows compressed and dilated, then has no source), then J from it."""
+    fw = G.fw
+    fw[W_M] = 0.0
+    fw[W_MG] = 0.0
+    _dilatation_p2g(P, fw, prm)
+    _dilatation_g2p(P, fw, prm, dt)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1697,6 +1811,8 @@ def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
         grid_update(G, prm, dt, ramp)  # 3. grid update, boundaries
         mirror_images(G, planes)
         g2p(P, G, prm, dt, nslabs)  # 4. G2P, advection
+        if prm[0].dilatation != 0:
+            smooth_dilatation(P, G, prm, dt)  #    volumetric smoothing of L, then J
         status, idx, smax, numax = update_stress(P, mat, dt, last)  # 5. material law
 
         clk.time = t + dt

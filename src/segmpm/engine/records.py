@@ -73,6 +73,9 @@ PARAMS = np.dtype(
         ("dt_min", "f8"),
         ("c_floor", "f8"),  # floor on the wave speed of the time step, m/s
         ("images", "i8"),  # 1: image nodes behind walls on node planes (boundary.wall_images)
+        # 1: the volumetric rate tr L of each point replaced by its mass-weighted grid average
+        # (grid.volumetric_smoothing; docs/model.md, "Volumetric smoothing")
+        ("dilatation", "i8"),
         # 2-D only: the sidewall Coulomb body force 2 μ_w K_w / W (and its slow value, u_w)
         ("sidewall", "f8"),
         ("sidewall_slow", "f8"),

@@ -184,3 +184,40 @@ def p2g_np(x, v, C, mass, vol, sig, h, origin, shape, periodic_x):
                     mom[i, j, k] += w * mass[p] * (v[p] + C[p] @ e)
                     f[i, j, k] -= vol[p] * sig[p] @ grad
     return m, mom, f
+
+
+def smooth_dilatation_np(x, mass, L, J, h, origin, shape, periodic_x, dt):
+    """3-D volumetric smoothing, point by point with full matrices: the nodal averages
+    a_i = Σ_p w_ip m_p tr L_p / Σ_p w_ip m_p, tr L̄_p = Σ_i w_ip a_i / Σ_i w_ip (nodes with mass),
+    L̄ = L + (tr L̄ − tr L)/3 I and J det(I + Δt L̄). ``L`` (n, 3, 3). Returns (L̄, J)."""
+    m = np.zeros(shape)
+    mt = np.zeros(shape)
+    xi = (x - np.asarray(origin)[None, :]) / h
+    bases, ws, _ = zip(*(bspline2_1d(xi[:, a]) for a in range(3)), strict=True)
+    tr = np.trace(L, axis1=1, axis2=2)
+
+    def stencil(p):
+        for a in range(3):
+            i = bases[0][p] + a
+            if periodic_x:
+                i %= shape[0]
+            for b in range(3):
+                for c in range(3):
+                    yield (i, bases[1][p] + b, bases[2][p] + c), ws[0][p, a] * ws[1][p, b] * ws[2][p, c]
+
+    for p in range(x.shape[0]):
+        for node, w in stencil(p):
+            m[node] += w * mass[p]
+            mt[node] += w * mass[p] * tr[p]
+    Lbar = L.copy()
+    Jn = np.empty_like(J)
+    for p in range(x.shape[0]):
+        num = wsum = 0.0
+        for node, w in stencil(p):
+            if m[node] > 0.0:
+                num += w * mt[node] / m[node]
+                wsum += w
+        if wsum > 0.0:
+            Lbar[p] += (num / wsum - tr[p]) / 3.0 * np.eye(3)
+        Jn[p] = J[p] * np.linalg.det(np.eye(3) + dt * Lbar[p])
+    return Lbar, Jn

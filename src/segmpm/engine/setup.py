@@ -91,6 +91,9 @@ def _params(cfg: Config, dim: int, origin, nodes, periodic: bool) -> np.ndarray:
     prm["base_y"] = 0.0
     prm["base_mu"] = b.base_friction
     prm["images"] = 1 if b.wall_images else 0
+    vs = cfg.grid.volumetric_smoothing
+    auto = dim == 3 and cfg.material.rheology == "nonlocal"  # docs/model.md §2: measured there
+    prm["dilatation"] = 1 if (vs == "on" or (vs == "auto" and auto)) else 0
     return prm
 
 
@@ -252,7 +255,7 @@ def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
         nodes=np.zeros((*nodes, k.NF)), gv=np.zeros((*nodes, k.NV)),
         slab_start=np.zeros(nslabs + 1, dtype=np.int64), order=np.zeros(n, dtype=np.int64),
         bounds=np.zeros(max(1, threads) + 1, dtype=np.int64),
-        fw=np.zeros((k.NW, *(nodes if nonlocal_ else (1, 1, 1)))),
+        fw=np.zeros((k.NW, *(nodes if nonlocal_ or prm["dilatation"][0] else (1, 1, 1)))),
     )  # fmt: skip
     clock = np.zeros(1, dtype=CLOCK)
     seg = segregation_grid(cfg, prm, x, k.N_CWORK)
