@@ -240,8 +240,11 @@ def valid_data(draw) -> dict[str, Any]:
     data.setdefault("geometry", {})["dimension"] = 2
     if kind != "chute":  # the column model is for chute layers only
         data["scenario"]["solver"] = "mpm"
-    data.setdefault("grid", {}).update(cell_size=h, particles_per_cell=ppc,
-                                       volumetric_smoothing=draw(st.sampled_from(["auto", "off"])))
+    data.setdefault("grid", {}).update(
+        cell_size=h,
+        particles_per_cell=ppc,
+        volumetric_smoothing=draw(st.sampled_from(["auto", "off"])),
+    )
     data.setdefault("geometry", {}).update(
         length=length,
         depth=draw(st.floats(h, 0.05)),

@@ -203,7 +203,10 @@ def smooth_dilatation_np(x, mass, L, J, h, origin, shape, periodic_x, dt):
                 i %= shape[0]
             for b in range(3):
                 for c in range(3):
-                    yield (i, bases[1][p] + b, bases[2][p] + c), ws[0][p, a] * ws[1][p, b] * ws[2][p, c]
+                    yield (
+                        (i, bases[1][p] + b, bases[2][p] + c),
+                        ws[0][p, a] * ws[1][p, b] * ws[2][p, c],
+                    )
 
     for p in range(x.shape[0]):
         for node, w in stencil(p):
