@@ -28,15 +28,23 @@ from . import __version__
 from .bench_taichi import summarize
 from .io.atomic import write_json
 
-#: the variants ``segmpm bench --variants`` can time: the preset each one starts from
-VARIANTS = {"local": "chute_seed", "nonlocal": "chute_nonlocal"}
+#: the variants ``segmpm bench --variants`` can time: the preset each one starts from and the
+#: overrides on it. The ``generic-*`` variants are the same cases on the dimension-generic engine
+#: (``grid.engine = "generic"``), for the 2-D A/B of one engine against the other.
+VARIANTS = {
+    "local": ("chute_seed", ()),
+    "nonlocal": ("chute_nonlocal", ()),
+    "generic-local": ("chute_seed", ("grid.engine='generic'",)),
+    "generic-nonlocal": ("chute_nonlocal", ("grid.engine='generic'",)),
+}
 
 
 def _config_for(n_points: int, variant: str = "local"):
     from .config import apply_overrides, preset_data, resolve_extends, validate_data
 
-    data = resolve_extends(preset_data(VARIANTS[variant]), None)
-    quiet = ["output.progress=false", "output.fields=false"]
+    preset, extra = VARIANTS[variant]
+    data = resolve_extends(preset_data(preset), None)
+    quiet = ["output.progress=false", "output.fields=false", *extra]
     base = validate_data(apply_overrides(data, quiet))
     h = base.grid.cell_size
     ppc = base.grid.particles_per_cell

@@ -111,13 +111,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="timed blocks per case (the median is reported)")  # fmt: skip
     p.add_argument("--json", dest="json_out", help="write the results to this JSON file")
     p.add_argument("--no-peer", action="store_true", help="skip the Taichi mpm88 peer")
-    p.add_argument("--variants", nargs="+", default=["local"], choices=["local", "nonlocal"],
+    p.add_argument("--variants", nargs="+", default=["local"], choices=BENCH_VARIANTS,
                    help="models timed, interleaved (the first is the reference of the cost "
-                   "ratio): the local default and the grain-calibrated nonlocal model")  # fmt: skip
+                   "ratio): the local default and the grain-calibrated nonlocal model; generic-*: "
+                   "the same on the dimension-generic engine")  # fmt: skip
     p.add_argument("--contended", action="store_true",
                    help="the step idle and beside a busy process, and the default run alone, "
                    "beside it and two at once (default sizes: 596 and 32000)")  # fmt: skip
     return ap
+
+
+#: ``segmpm bench --variants`` (segmpm.bench.VARIANTS; listed here so that the parser does not
+#: import the compiled kernels)
+BENCH_VARIANTS = ["local", "nonlocal", "generic-local", "generic-nonlocal"]
 
 
 def _fail(msg: str) -> int:

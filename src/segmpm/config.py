@@ -93,6 +93,11 @@ class GridConfig(_Section):
     #: "Volumetric smoothing"). "auto": on for the nonlocal rheology in 3-D, where it was shown
     #: to help, else off; "on" needs geometry.dimension = 3.
     volumetric_smoothing: Literal["auto", "on", "off"] = "auto"
+    #: the MPM engine: "auto" (2-D: the production plane-strain engine, segmpm.mpm; 3-D: the
+    #: dimension-generic engine, segmpm.engine) or "generic" (the dimension-generic engine in 2-D
+    #: too: the same kernels as 3-D with D = 2; no grid.transfer = "flip", no column solver;
+    #: docs/architecture.md, "One engine: where 2-D stands").
+    engine: Literal["auto", "generic"] = "auto"
     #: threads of the compiled loop: "auto" (one below 20 000 points, else the cores this process
     #: may use that no other process keeps busy; segmpm.threads) or a count (0 = numba's pool).
     #: Results do not depend on it.
@@ -411,21 +416,22 @@ class Config(_Section):
             )
         if g.dimension == 3:
             self._check_3d()
-        elif self.grid.volumetric_smoothing == "on":
-            raise ValueError(
-                "grid.volumetric_smoothing = 'on' needs geometry.dimension = 3 (the 2-D engine "
-                "has no volumetric smoothing); allowed in 2-D: 'auto', 'off'"
-            )
+        else:
+            if self.grid.engine == "generic":
+                self._check_generic("grid.engine = 'generic' in 2-D")
+            if self.grid.volumetric_smoothing == "on":
+                raise ValueError(
+                    "grid.volumetric_smoothing = 'on' needs geometry.dimension = 3 (it is "
+                    "measured and tested in 3-D only); allowed in 2-D: 'auto', 'off'"
+                )
         if self.time.dt_min >= self.time.dt_max:
             raise ValueError(
                 f"time.dt_min = {self.time.dt_min} must be smaller than time.dt_max = {self.time.dt_max}"
             )
         return self
 
-    def _check_3d(self) -> None:
-        """What the 3-D engine supports today (docs/architecture.md, "Status")."""
-        g = self.geometry
-        h = self.grid.cell_size
+    def _check_generic(self, what: str) -> None:
+        """What the dimension-generic engine supports today (docs/architecture.md)."""
         need = {
             "scenario.kind": (self.scenario.kind, ("chute", "collapse")),
             "scenario.solver": (self.scenario.solver, ("mpm",)),
@@ -435,9 +441,15 @@ class Config(_Section):
         for key, (value, allowed) in need.items():
             if value not in allowed:
                 raise ValueError(
-                    f"geometry.dimension = 3 does not support {key} = {value!r} yet; allowed: "
+                    f"{what} does not support {key} = {value!r} yet; allowed: "
                     + ", ".join(repr(a) for a in allowed)
                 )
+
+    def _check_3d(self) -> None:
+        """What the 3-D engine supports today (docs/architecture.md, "Status")."""
+        g = self.geometry
+        h = self.grid.cell_size
+        self._check_generic("geometry.dimension = 3")
         if self.scenario.kind == "chute":
             wm = g.width / 2 if g.mirror else g.width
             n = wm / h

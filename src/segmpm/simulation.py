@@ -125,9 +125,11 @@ class Simulation:
     """
 
     def __new__(cls, config: Config | None = None, out_dir: str | Path | None = None):
-        """``geometry.dimension = 3`` runs on the dimension-generic engine
-        (:class:`segmpm.engine.simulation.EngineSimulation`, the same controller)."""
-        if cls is Simulation and config is not None and config.geometry.dimension == 3:
+        """``geometry.dimension = 3`` and ``grid.engine = "generic"`` run on the dimension-generic
+        engine (:class:`segmpm.engine.simulation.EngineSimulation`, the same controller)."""
+        generic = config is not None and (
+            config.geometry.dimension == 3 or config.grid.engine == "generic")  # fmt: skip
+        if cls is Simulation and generic:
             from .engine.simulation import EngineSimulation
 
             return super().__new__(EngineSimulation)
