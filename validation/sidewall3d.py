@@ -36,7 +36,16 @@ runs join the tables with --extra LABEL=RUN:
     python validation/sidewall3d.py --prefix nl_ --times 0.5 1 2 3 5 \
         --extra walls_3d_slip_law=nlslip_walls3d_h1mm walls_3d_mu0.22=nlmu022_walls3d_h1mm
 
-(the wall law fitted against the DEM's wall slip speed, and the mobilised constant μ_w = 0.22,
+The 20 s runs (the example's 3-D case and the default 2-D case at h = 1 mm):
+
+    segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/nlslip20_walls3d_h1mm \
+        --set output.fields=false
+    segmpm run --out validation/results/sidewall3d/nl_body2d20_h1mm --set grid.cell_size=0.001 \
+        --set geometry.length=0.002 --set output.fields=false
+    python validation/sidewall3d.py --prefix nl_ --body nl_body2d20_h1mm \
+        --walls nlslip20_walls3d_h1mm --tag nl20 --times 1 2 5 10 20   # summary_nl20.json
+
+(The --extra labels above: the wall law fitted against the DEM's wall slip speed, and the mobilised constant μ_w = 0.22,
 docs/calibration.md §2). Every 3-D run above uses the volumetric smoothing (grid.volumetric_smoothing
 = "auto", on in 3-D; docs/model.md §2) unless its config.toml says otherwise; the runs
 nosmooth_nlflow*_walls3d_h1mm are the flow-only (segregation.model = "none") diagnostics made
@@ -144,12 +153,14 @@ def _phi_stats(y, phi, f, y_dem, phi_dem, top):
     return float(np.mean(phi[sel])), float(rms), float(1.0 - rms / mixed)
 
 
-def segregation_rows(ref, win, times, prefix="seg_", extra=None) -> list[dict]:
-    """The runs with a segregation step (<prefix>body2d_h1mm, <prefix>walls3d_h1mm and the
-    ``extra`` 3-D runs {label: directory}), if there."""
+def segregation_rows(
+    ref, win, times, prefix="seg_", extra=None, body=None, walls=None
+) -> list[dict]:
+    """The runs with a segregation step (<prefix>body2d_h1mm or ``body``, <prefix>walls3d_h1mm
+    or ``walls``, and the ``extra`` 3-D runs {label: directory}), if there."""
     runs = {
-        "body_force_2d": RES / f"{prefix}body2d_h1mm",
-        "walls_3d": RES / f"{prefix}walls3d_h1mm",
+        "body_force_2d": RES / (body or f"{prefix}body2d_h1mm"),
+        "walls_3d": RES / (walls or f"{prefix}walls3d_h1mm"),
         **(extra or {}),
     }
     data = {k: xr.open_dataset(d / "profiles.nc").load() for k, d in runs.items()
@@ -208,11 +219,18 @@ def main() -> None:
     ap.add_argument("--extra", nargs="*", default=[], metavar="LABEL=RUN",
                     help="further 3-D runs to compare, e.g. walls_3d_mu0.22=nlmu022_walls3d_h1mm "
                          "(a directory under validation/results/sidewall3d)")  # fmt: skip
+    ap.add_argument("--body", default=None, help="the 2-D run (default <prefix>body2d_h1mm)")
+    ap.add_argument("--walls", default=None, help="the 3-D run (default <prefix>walls3d_h1mm)")
+    ap.add_argument("--tag", default=None,
+                    help="names the outputs summary_<tag>.json, sidewall3d_<tag>.png "
+                         "(default: the prefix)")  # fmt: skip
     args = ap.parse_args()
     pre = args.prefix
     extra = {lab: RES / run for lab, run in (e.split("=", 1) for e in args.extra)}
-    p2 = xr.open_dataset(RES / f"{pre}body2d_h1mm" / "profiles.nc").load()
-    runs3 = {"walls_3d": RES / f"{pre}walls3d_h1mm", **extra}
+    body = args.body or f"{pre}body2d_h1mm"
+    walls = args.walls or f"{pre}walls3d_h1mm"
+    p2 = xr.open_dataset(RES / body / "profiles.nc").load()
+    runs3 = {"walls_3d": RES / walls, **extra}
     p3s = {k: xr.open_dataset(d / "profiles.nc").load() for k, d in runs3.items()}
     c3s = {k: xr.open_dataset(d / "cross_section.nc").load() for k, d in runs3.items()}
     p3 = p3s["walls_3d"]
@@ -282,11 +300,12 @@ def main() -> None:
         rows.append(row)
         print(json.dumps({k: ({kk: vv for kk, vv in v.items() if kk != "surface_u_across"}
                               if isinstance(v, dict) else v) for k, v in row.items()}))  # fmt: skip
-    seg = segregation_rows(ref, win, times, pre if pre else "seg_", extra)
+    seg = segregation_rows(ref, win, times, pre if pre else "seg_", extra,
+                           args.body, args.walls)  # fmt: skip
     axes[0, 0].legend(fontsize=7)
     axes[1, 0].legend(fontsize=7)
     fig.tight_layout()
-    tag = f"_{pre.rstrip('_')}" if pre else ""
+    tag = f"_{args.tag}" if args.tag else (f"_{pre.rstrip('_')}" if pre else "")
     fig.savefig(RES / f"sidewall3d{tag}.png", dpi=110)
     (RES / f"summary{tag}.json").write_text(
         json.dumps({"flow": rows, "segregation": seg}, indent=1)
