@@ -67,14 +67,13 @@ def generic(n_points: int):
     nt = G.bounds.shape[0] - 1
     planes = k.image_planes(prm)
     dt = float(clock[0]["dt"])
-    var = k.material_variant(mat)
     calls = {
         "sort": lambda: k.counting_sort(P.cursor, G.slab_start, G.order, nt),
         "p2g": lambda: k.p2g(P, G, prm, True),
         "images": lambda: (k.fold_images(G, planes, prm, 1.0), k.mirror_images(G, planes)),
         "grid_update": lambda: k.grid_update(G, prm, dt, 1.0),
         "g2p": lambda: k.g2p(P, G, prm, dt, nslabs),
-        "material": lambda: k.call_with_variant(k.update_stress, (P, mat, dt, False), var),
+        "material": lambda: k.update_stress(P, mat, dt, False),
         "advance": lambda: k.advance(P, G, prm, mat, clock, seg, 1e9, 1),
     }  # fmt: skip
     return st.n, calls

@@ -29,12 +29,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import literally, njit, prange, typeof, types
+from numba import njit, prange
 
 from segmpm import _llvm_options  # noqa: F401  (before any kernel compiles)
 from segmpm._fmath import flog, fsqrt
 from segmpm.engine.records import BC_FRICTION, BC_NOSLIP, BC_OPEN, BC_SLIP, BC_SYMMETRY
-from segmpm.materials import VAR_ELASTIC, VAR_FEI_LINEAR, VAR_FEI_POWER, VAR_NGF
 from segmpm.materials.ngf import relax_logistic, return_factor
 from segmpm.materials.params import (
     DRIVER_A,
@@ -908,7 +907,7 @@ def _kinematics(L, e, dt):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def fei_tensor(mat, L, e, J, phi, dt, linear):
+def fei_tensor(mat, L, e, J, phi, dt):
     """Stress update of one point, Fei et al. 2016 (docs/model.md §1) in full tensor form.
 
     ``L`` the velocity gradient (row-major 3×3), ``e`` the elastic strain (xx, yy, zz, xy, xz,
@@ -916,9 +915,7 @@ def fei_tensor(mat, L, e, J, phi, dt, linear):
     ε + Δt (d + w ε − ε w); the yield cap √I₂ ≤ r_c I₁/q_φ on the deviator; the Jiang–Liu stress
     σ^e = −p_e 1 + C √I₁ ε⁰; the dissipative σ^d = 2 η d′ with η = a d̄^b ρ_s^{b/2} p_e^{1−b/2}
     γ̇^{b−1} (d̄ = φ_s d_s + (1 − φ_s) d_l); a bulk viscosity ζ ρ c h tr d; the gas state (no
-    stress) for I₁ ≤ 0. Returns (ε⁶, σ⁶, p_e, γ̇, I, S, c, ν). ``linear``: b = 1 (μ_d linear in I,
-    no powers); with it a constant, a loop over points calling this vectorises: no calls, the
-    gas state decided at the end on values computed for every point (selects, not branches)."""
+    stress) for I₁ ≤ 0. Returns (ε⁶, σ⁶, p_e, γ̇, I, S, c, ν)."""
     dpxx, dpyy, dpzz, dxy, dxz, dyz, trd, gdot, exx, eyy, ezz, exy, exz, eyz = _kinematics(
         L, e, dt)  # fmt: skip
     t3 = (exx + eyy + ezz) * THIRD
@@ -939,6 +936,11 @@ def fei_tensor(mat, L, e, J, phi, dt, linear):
     e0yz = eyz * s
     I2 = cap * cap if over else I2
     third = I1 * THIRD
+    if I1 <= 0.0:
+        # gas: no contacts, no stress; the volumetric strain keeps tracking the density
+        v = -third
+        return (v, v, v, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                0.0, gdot, 0.0, 0.0, 0.0, 0.0)  # fmt: skip
     A = mat.a
     Cj = mat.c
     rho_s = mat.rho_s
@@ -950,7 +952,7 @@ def fei_tensor(mat, L, e, J, phi, dt, linear):
     spe = fsqrt(rho_s * pe)
     a = mat.mu_a * mat.sdf
     b = mat.mu_b
-    if linear:
+    if b == 1.0:
         eta = a * dbar * spe
     else:
         g = max(gdot, mat.gfloor)
@@ -976,12 +978,6 @@ def fei_tensor(mat, L, e, J, phi, dt, linear):
         S = -2.0 * eta * dpyy
     S *= mat.kappa
     nu = (eta + zeta) * J * mat.irho0
-    if I1 <= 0.0:
-        # gas: no contacts, no stress; the volumetric strain keeps tracking the density (the
-        # contact values above, NaN for I₁ < 0, are discarded)
-        v = -third
-        return (v, v, v, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-                0.0, gdot, 0.0, 0.0, 0.0, 0.0)  # fmt: skip
     return (e0xx - third, e0yy - third, e0zz - third, e0xy, e0xz, e0yz,
             sxx, syy, szz, sxy, sxz, syz, pe, gdot, inertial, S, c, nu)  # fmt: skip
 
@@ -1019,6 +1015,10 @@ def ngf_tensor(mat, L, e, J, phi, g, dt):
                 + 2.0 * (exy * exy + exz * exz + eyz * eyz))  # fmt: skip
     I1 = -flog(J)
     third = I1 * THIRD
+    if I1 <= 0.0:
+        v = -third
+        return (v, v, v, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                0.0, gdot, 0.0, 0.0, 0.0, 0.0)  # fmt: skip
     A = mat.a
     Cj = mat.c
     rho_s = mat.rho_s
@@ -1072,61 +1072,30 @@ def ngf_tensor(mat, L, e, J, phi, g, dt):
         S = mat.kappa_g * rho * (g * dbar) ** 2
     S *= mat.kappa
     nu = zeta * J * mat.irho0
-    if I1 <= 0.0:
-        # gas: no contacts, no stress; the volumetric strain keeps tracking the density (the
-        # contact values above, NaN for I₁ < 0, are discarded)
-        v = -third
-        return (v, v, v, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-                0.0, gdot, 0.0, 0.0, 0.0, 0.0)  # fmt: skip
     return (e0xx - third, e0yy - third, e0zz - third, e0xy, e0xz, e0yz,
             sxx, syy, szz, sxy, sxz, syz, pe, gdot, inertial, S, c, nu)  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def variant(m):
-    """The material variant (``VAR_*`` of :mod:`segmpm.materials`) of the record ``m``: linear
-    elastic, Fei 2016 with b = 1 (no powers) or b ≠ 1, or the nonlocal fluidity flow rule."""
-    if m.kind == KIND_FEI2016_NGF:
-        return VAR_NGF
+def material(mat, L, e, J, phi, g, dt):
+    """The constitutive law chosen at set-up (``mat.kind``): the extension point for a new model
+    (docs/architecture.md): a function of (record, L, ε, J, φ_s, g, Δt) with this return
+    contract (``g`` the point's fluidity, read by the nonlocal law only)."""
+    m = mat[0]
     if m.kind == KIND_FEI2016:
-        return VAR_FEI_LINEAR if m.mu_b == 1.0 else VAR_FEI_POWER
-    return VAR_ELASTIC
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def material_of(var, m, L, e, J, phi, g, dt):
-    """The constitutive law of variant ``var``: the extension point for a new model
-    (docs/architecture.md): a function of (record, L, ε, J, φ_s, g, Δt) with the return contract
-    of :func:`fei_tensor` (``g`` the point's fluidity, read by the nonlocal law only). Called
-    with a constant ``var`` (the material pass), only that law is compiled into the loop."""
-    if var == VAR_FEI_LINEAR:
-        return fei_tensor(m, L, e, J, phi, dt, True)
-    if var == VAR_FEI_POWER:
-        return fei_tensor(m, L, e, J, phi, dt, False)
-    if var == VAR_NGF:
+        return fei_tensor(m, L, e, J, phi, dt)
+    if m.kind == KIND_FEI2016_NGF:
         return ngf_tensor(m, L, e, J, phi, g, dt)
     return elastic_tensor(m, L, e, J, phi, dt)
 
 
-@njit(cache=True, error_model="numpy", inline="always")
-def material(mat, L, e, J, phi, g, dt):
-    """The constitutive law of the one-element record array ``mat`` at one point (a runtime
-    choice of :func:`material_of`; tests and single-point use)."""
-    m = mat[0]
-    return material_of(variant(m), m, L, e, J, phi, g, dt)
-
-
-#: points per block of the material pass (``update_stress``), at most
-BLOCK = 512
-#: rows of a block's buffer: shear rate, I, S, c + |v|, ν, failed (1.0)
-B_GDOT, B_I, B_S, B_SPEED, B_NU, B_BAD, B_ROWS = range(7)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _stress_block(var, lo, count, buf, P, mat, dt):
-    """The material law of variant ``var`` (a constant) at points lo … lo + count − 1: state and
-    pressure stored, the diagnostics and the step check (1.0: failed) into ``buf``. No calls,
-    no reductions and unsigned indices (no negative-index wrap): the loop vectorises."""
+@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
+def update_stress(P, mat, dt, full):
+    """The material law at every point from ``P.lg`` (L of G2P), the subcycle integrals and the
+    step check. Returns (status, first failing point or −1, max c + |v|, max ν); the failing point
+    is the first in index order (a min-reduction), independent of the thread count. The output
+    diagnostics (``diag`` rows 1–5) are written when ``full`` and for a failing point."""
+    x = P.x
     v = P.v
     J = P.J
     eps = P.eps
@@ -1138,12 +1107,12 @@ def _stress_block(var, lo, count, buf, P, mat, dt):
     lg = P.lg
     flags = P.flags
     gf = P.gf
-    m = mat[0]
-    base = np.uint64(lo)
-    for u in range(np.uint64(count)):
-        p = base + u
-        Jp = J[p]
-        r = material_of(var, m, _mat(lg, p), _sym(eps, p), Jp, phi[p], gf[p], dt)
+    n = x.shape[1]
+    smax = 0.0
+    numax = 0.0
+    bad = n
+    for p in prange(n):
+        r = material(mat, _mat(lg, p), _sym(eps, p), J[p], phi[p], gf[p], dt)
         _put_sym(eps, p, r[0], r[1], r[2], r[3], r[4], r[5])
         _put_sym(sig, p, r[6], r[7], r[8], r[9], r[10], r[11])
         diag[0, p] = r[12]
@@ -1152,72 +1121,17 @@ def _stress_block(var, lo, count, buf, P, mat, dt):
         vx, vy, vz = _vec(v, p)
         speed = r[16] + fsqrt(vx * vx + vy * vy + vz * vz)
         ok = (flags[p] == ST_OK and math.isfinite(speed)
-              and math.isfinite(r[6] + r[7] + r[8] + r[9] + r[10] + r[11]) and Jp > 0.0)  # fmt: skip
-        buf[B_GDOT, u] = r[13]
-        buf[B_I, u] = r[14]
-        buf[B_S, u] = r[15]
-        buf[B_SPEED, u] = speed
-        buf[B_NU, u] = r[17]
-        buf[B_BAD, u] = 0.0 if ok else 1.0
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _reduce_block(lo, count, n, buf, diag, full):
-    """Max c + |v|, max ν and the first failing point (n: none) of a block from its buffer; the
-    diagnostics (``diag`` rows 1–5) of every point if ``full``, else of the failing ones."""
-    smax = 0.0
-    numax = 0.0
-    bad = n
-    for q in range(count):
-        smax = max(smax, buf[B_SPEED, q])
-        numax = max(numax, buf[B_NU, q])
-        failed = buf[B_BAD, q] != 0.0
-        if failed:
-            bad = min(bad, lo + q)
-        if full or failed:
-            p = lo + q
-            diag[1, p] = buf[B_GDOT, q]
-            diag[2, p] = buf[B_I, q]
-            diag[3, p] = buf[B_S, q]
-            diag[4, p] = buf[B_SPEED, q]
-            diag[5, p] = buf[B_NU, q]
-    return smax, numax, bad
-
-
-@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
-def update_stress(P, mat, dt, full, var):
-    """The material law at every point from ``P.lg`` (L of G2P), the subcycle integrals and the
-    step check. Returns (status, first failing point or −1, max c + |v|, max ν); the failing point
-    is the first in index order (a min-reduction), independent of the thread count. The output
-    diagnostics (``diag`` rows 1–5) are written when ``full`` and for a failing point.
-
-    Blocks of up to ``BLOCK`` points run in parallel. In a block a loop without calls or
-    reductions (``_stress_block``, the variant a constant: one compiled copy per law) updates the
-    state and leaves the per-point diagnostics in a buffer, which a short scalar loop reduces
-    (``_reduce_block``). The block size changes no result (each point on its own, exact max/min
-    reductions). ``var`` = :func:`variant` of ``mat``, a compile-time constant (``literally``):
-    a run compiles the material pass of its own law only."""
-    literally(var)
-    x = P.x
-    J = P.J
-    sig = P.sig
-    diag = P.diag
-    flags = P.flags
-    n = x.shape[1]
-    # at least 16 blocks (two per thread on up to 8 threads) when there are few points
-    size = max(8, min(BLOCK, 8 * ((n + 127) // 128)))
-    smax = 0.0
-    numax = 0.0
-    bad = n
-    for blk in prange((n + size - 1) // size):
-        lo = blk * size
-        count = min(size, n - lo)
-        buf = np.empty((B_ROWS, size))
-        _stress_block(var, lo, count, buf, P, mat, dt)
-        bs, bn, bb = _reduce_block(lo, count, n, buf, diag, full)
-        smax = max(smax, bs)
-        numax = max(numax, bn)
-        bad = min(bad, bb)
+              and math.isfinite(r[6] + r[7] + r[8] + r[9] + r[10] + r[11]) and J[p] > 0.0)  # fmt: skip
+        if full or not ok:
+            diag[1, p] = r[13]
+            diag[2, p] = r[14]
+            diag[3, p] = r[15]
+            diag[4, p] = speed
+            diag[5, p] = r[17]
+        if not ok:
+            bad = min(bad, p)
+        smax = max(smax, speed)
+        numax = max(numax, r[17])
     if bad >= n:
         return ST_OK, -1, smax, numax
     ok_state = math.isfinite(diag[4, bad]) and J[bad] > 0.0
@@ -1229,55 +1143,15 @@ def update_stress(P, mat, dt, full, var):
 
 
 @njit(cache=True, error_model="numpy")
-def _prime(P, mat, var):
-    literally(var)
+def prime(P, mat):
+    """Stress, diagnostics and wave speeds of the initial state (no deformation, Δt = 0)."""
     P.lg[:, :] = 0.0
     P.flags[:] = ST_OK
     s = P.s_int.copy()
     g = P.g_int.copy()
-    update_stress(P, mat, 0.0, True, var)
+    update_stress(P, mat, 0.0, True)
     P.s_int[:] = s
     P.g_int[:] = g
-
-
-#: compiled entry points of the functions specialised on the variant, by (function, argument
-#: types, variant): see :func:`call_with_variant`
-_ENTRIES: dict = {}
-
-
-def call_with_variant(fn, args: tuple, var: int):
-    """``fn(*args, var)`` for a kernel that specialises on ``var`` with ``literally``.
-
-    Numba's dispatcher types a Python int as int64, finds no such overload (``literally``
-    refuses it), and retypes the call with the literal on *every* call from Python, a cost of
-    seconds for a kernel with much inlined code. The compiled overload of these argument types
-    and this literal is looked up once, and called directly afterwards."""
-    key = (fn.__name__, tuple(typeof(a) for a in args), var)
-    entry = _ENTRIES.get(key)
-    if entry is not None:
-        return entry(*args, var)
-    out = fn(*args, var)
-    want = (*key[1], types.literal(var))
-    for sig, cres in fn.overloads.items():
-        if tuple(sig) == want:
-            _ENTRIES[key] = cres.entry_point
-    return out
-
-
-def material_variant(mat) -> int:
-    """The variant (``VAR_*``) of the one-element material record array ``mat``: the
-    compile-time constant of :func:`advance_loop` and :func:`update_stress`."""
-    return int(_variant_of(mat))
-
-
-@njit(cache=True, error_model="numpy")
-def _variant_of(mat):
-    return variant(mat[0])
-
-
-def prime(P, mat) -> None:
-    """Stress, diagnostics and wave speeds of the initial state (no deformation, Δt = 0)."""
-    call_with_variant(_prime, (P, mat), material_variant(mat))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1906,25 +1780,16 @@ def time_step(prm, clk):
     return dt
 
 
-def advance(P, G, prm, mat, clock, seg, t_stop: float, max_steps: int):
-    """Advance to ``t_stop`` (exactly) or by ``max_steps`` steps. Returns (status, point, steps).
-    The compiled loop is :func:`advance_loop`, specialised on the material variant."""
-    args = (P, G, prm, mat, clock, seg, float(t_stop), int(max_steps))
-    return call_with_variant(advance_loop, args, material_variant(mat))
-
-
 @njit(cache=True, error_model="numpy")
-def advance_loop(P, G, prm, mat, clock, seg, t_stop, max_steps, var):
-    """:func:`advance` with ``var`` = :func:`variant` of ``mat``, a compile-time constant
-    (``literally``): only the law of the run, and the fluidity update only for the nonlocal
-    law, are compiled into it.
+def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
+    """Advance to ``t_stop`` (exactly) or by ``max_steps`` steps. Returns (status, point, steps).
 
     The whole step, in order (the module docstring numbers them)."""
-    literally(var)
     clk = clock[0]
     nslabs = G.slab_start.shape[0] - 1
     threads = G.bounds.shape[0] - 1
     planes = image_planes(prm)
+    nonlocal_on = mat[0].kind == KIND_FEI2016_NGF
     steps = 0
     while steps < max_steps and clk.time < t_stop:
         t = clk.time
@@ -1948,7 +1813,7 @@ def advance_loop(P, G, prm, mat, clock, seg, t_stop, max_steps, var):
         g2p(P, G, prm, dt, nslabs)  # 4. G2P, advection
         if prm[0].dilatation != 0:
             smooth_dilatation(P, G, prm, dt)  #    volumetric smoothing of L, then J
-        status, idx, smax, numax = update_stress(P, mat, dt, last, var)  # 5. material law
+        status, idx, smax, numax = update_stress(P, mat, dt, last)  # 5. material law
 
         clk.time = t + dt
         clk.step += 1
@@ -1959,7 +1824,7 @@ def advance_loop(P, G, prm, mat, clock, seg, t_stop, max_steps, var):
         steps += 1
         if status != ST_OK:
             return status, idx, steps
-        if var == VAR_NGF:  # 5b. fluidity update, every material.fluidity_dt
+        if nonlocal_on:  # 5b. fluidity update, every material.fluidity_dt
             clk.tflu += dt
             if clk.tflu >= mat[0].flu_dt * (1.0 - 1e-12):
                 fluidity_step(P, G, prm, mat, clk.tflu)
@@ -1972,6 +1837,5 @@ def advance_loop(P, G, prm, mat, clock, seg, t_stop, max_steps, var):
     return ST_OK, -1, steps
 
 
-__all__ = ["D", "NE", "NF", "NV", "NW", "SLAB", "advance", "advance_loop", "apply_planes", "fei_tensor",
-           "fluidity_step", "g2p", "grid_update", "material_variant", "ngf_tensor", "p2g", "prime",
-           "update_stress"]  # fmt: skip
+__all__ = ["D", "NE", "NF", "NV", "NW", "SLAB", "advance", "apply_planes", "fei_tensor",
+           "fluidity_step", "g2p", "grid_update", "ngf_tensor", "p2g", "prime", "update_stress"]  # fmt: skip

@@ -113,8 +113,8 @@ class EngineSimulation(Simulation):
         t0, wall = _time.perf_counter(), self.wall_time
         from .._cache import KERNEL_CACHE
 
-        cold = not self.kernels.advance_loop.signatures and not any(
-            KERNEL_CACHE.rglob(f"kernels_d{self.dim}.advance_loop-*.nbi"))  # fmt: skip
+        cold = not self.kernels.advance.signatures and not any(
+            KERNEL_CACHE.rglob(f"kernels_d{self.dim}.advance-*.nbi"))  # fmt: skip
         if cold:
             import sys
 
