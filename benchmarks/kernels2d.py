@@ -73,7 +73,7 @@ def generic(n_points: int):
         "images": lambda: (k.fold_images(G, planes, prm, 1.0), k.mirror_images(G, planes)),
         "grid_update": lambda: k.grid_update(G, prm, dt, 1.0),
         "g2p": lambda: k.g2p(P, G, prm, dt, nslabs),
-        "material": lambda: k.update_stress(P, mat, dt, False),
+        "material": lambda: k.update_stress(P, mat, dt, False, 1),
         "advance": lambda: k.advance(P, G, prm, mat, clock, seg, 1e9, 1),
     }  # fmt: skip
     return st.n, calls

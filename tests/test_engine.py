@@ -5,6 +5,9 @@ closed form, thread independence and resume in 3-D."""
 
 from __future__ import annotations
 
+import platform
+import re
+
 import numpy as np
 import pytest
 
@@ -731,3 +734,111 @@ def test_generic_engine_in_2d_names_what_it_lacks():
     with pytest.raises(ConfigError, match="grid.engine"):
         _seed2d(["grid.engine='fast'"])
     assert _seed2d(["grid.engine='generic'"]).grid.engine == "generic"
+
+
+def _points(rng, n, dim):
+    """Random points for the material pass: compressed states with gas points among them."""
+    from segmpm.engine.records import Points
+
+    L, e, J, phi = _random_state(rng, n, dim)
+    J[::17] = np.exp(rng.uniform(1e-4, 1e-3, J[::17].shape))  # gas (I₁ < 0)
+    ne = 6 if dim == 3 else 4
+    lg = L[:, :dim, :dim].reshape(n, dim * dim).T.copy()
+    eps = e[:, [0, 1, 2, 3, 4, 5][:ne]].T.copy()
+    return Points(
+        x=rng.uniform(0, 0.01, (dim, n)), v=rng.normal(scale=0.3, size=(dim, n)),
+        C=np.zeros((dim * dim, n)), mass=np.ones(n), vol0=np.ones(n), J=J, eps=eps,
+        sig=np.zeros((ne, n)), phi=phi, gf=rng.uniform(0, 2e3, n),
+        diag=np.full((6, n), -7.0), s_int=rng.uniform(0, 1e-3, n),
+        g_int=rng.uniform(0, 1e-3, n), lg=lg, flags=np.zeros(n, dtype=np.int64),
+        cursor=np.zeros(n, dtype=np.int64),
+    )  # fmt: skip
+
+
+LAWS = {
+    "fei-b1": lambda dim: _cfg([f"geometry.dimension={dim}"]),
+    "fei-b0.7": lambda dim: _cfg([f"geometry.dimension={dim}", "material.b=0.7"]),
+    "nonlocal": lambda dim: _nl_cfg(dim=dim),
+}
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("law", list(LAWS))
+def test_material_pass_is_the_point_law_at_every_point(dim, law):
+    """``update_stress`` (blocks of points, the law a compile-time constant, a scalar reduction
+    per block) gives at every point what the law gives for that point alone: state, stress,
+    p_e, the subcycle integrals, the maxima of c + |v| and ν; with a partial last block, gas
+    points, the diagnostics written only when asked, and the first failing point."""
+    from segmpm.mpm.params import ST_LEFT_GRID, ST_OK
+
+    k = kernels(dim)
+    mat = build(LAWS[law](dim), dim).mat
+    rng = np.random.default_rng(11)
+    n = 3 * k.BLOCK + 37
+    P = _points(rng, n, dim)
+    before = {f: getattr(P, f).copy() for f in ("eps", "s_int", "g_int")}
+    dt = 1e-5
+    status, bad, smax, numax = k.update_stress(P, mat, dt, False, 2)
+    assert (status, bad) == (ST_OK, -1)
+    ne = k.NE
+    r = np.empty((n, 18))
+    for p in range(n):
+        L = np.zeros((3, 3))
+        L[:dim, :dim] = P.lg[:, p].reshape(dim, dim)
+        e = np.zeros(6)
+        e[:ne] = before["eps"][:, p]
+        r[p] = k.material(mat, tuple(L.ravel()), tuple(e), P.J[p], P.phi[p], P.gf[p], dt)
+
+    # the pass contracts a·b + c into FMAs and the point-by-point call does not: round-off,
+    # relative to each quantity's scale (the deviatoric parts cancel to ~1e-3 of it)
+    def close(a, b, what):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(b).max(), err_msg=what)
+
+    close(P.eps, r[:, :ne].T, "eps")
+    close(P.sig, r[:, 6 : 6 + ne].T, "sig")
+    close(P.diag[0], r[:, 12], "p_e")
+    close(P.s_int - before["s_int"], r[:, 15] * dt, "S dt")
+    close(P.g_int - before["g_int"], r[:, 13] * dt, "gdot dt")
+    speed = r[:, 16] + np.sqrt((P.v**2).sum(axis=0))
+    assert smax == pytest.approx(speed.max(), rel=1e-12)
+    assert numax == pytest.approx(r[:, 17].max(), rel=1e-12)
+    assert (r[::17, 6:12] == 0.0).all() and (r[::17, 13] > 0.0).any()  # gas: no stress
+    assert (P.diag[1:] == -7.0).all()  # not asked: not written
+    # the first failing point in index order, its diagnostics written, the others' not
+    P.eps[:] = before["eps"]
+    P.flags[[n - 5, k.BLOCK + 3]] = ST_LEFT_GRID
+    status, bad, _, _ = k.update_stress(P, mat, dt, False, 2)
+    assert (status, bad) == (ST_LEFT_GRID, k.BLOCK + 3)
+    assert (P.diag[1:, [k.BLOCK + 3, n - 5]] != -7.0).all()
+    assert (np.delete(P.diag[1:], [k.BLOCK + 3, n - 5], axis=1) == -7.0).all()
+    P.eps[:] = before["eps"]
+    P.flags[:] = ST_OK
+    k.update_stress(P, mat, dt, True, 1)  # asked: written everywhere, as in the reference
+    close(P.diag[1], r[:, 13], "gdot")
+    close(P.diag[4], speed, "c + |v|")
+
+
+@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="x86 instruction names")
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("law", ["fei-b1", "nonlocal"])
+def test_material_loop_is_vectorised(dim, law):
+    """The material pass's update loop, with the b = 1 or the nonlocal law as the constant of
+    the block, compiles to packed (SIMD) square roots. A call, a power or an early return in a
+    law would leave it scalar and the pass four times slower (docs/performance.md)."""
+    import numba
+
+    k = kernels(dim)
+    mat = build(LAWS[law](dim), dim).mat
+    which = k.law_of(mat)
+    P = _points(np.random.default_rng(0), 64, dim)
+
+    @numba.njit(error_model="numpy", parallel=True, fastmath={"contract"})
+    def one_block(P, mat, dt):  # compiled fresh: cached code cannot be inspected
+        buf = np.empty((k.B_ROWS, 64))
+        for _ in numba.prange(1):
+            k._stress_block(which, 0, 64, buf, P, mat, dt)
+        return buf
+
+    one_block(P, mat, 1e-5)
+    asm = one_block.inspect_asm(one_block.signatures[0])
+    assert re.search(r"\bv?sqrtpd\b", asm), "the material loop is not vectorised"

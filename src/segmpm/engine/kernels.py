@@ -34,6 +34,7 @@ from numba import njit, prange
 from segmpm import _llvm_options  # noqa: F401  (before any kernel compiles)
 from segmpm._fmath import flog, fsqrt
 from segmpm.engine.records import BC_FRICTION, BC_NOSLIP, BC_OPEN, BC_SLIP, BC_SYMMETRY
+from segmpm.materials import VAR_ELASTIC, VAR_FEI_LINEAR, VAR_FEI_POWER, VAR_NGF
 from segmpm.materials.ngf import relax_logistic, return_factor
 from segmpm.materials.params import (
     DRIVER_A,
@@ -53,6 +54,9 @@ from segmpm.mpm.params import (
     TRANSFER_AFLIP,
 )
 from segmpm.mpm.shape import bspline2_frac
+
+# the rows of a block's buffer (diagnostics, step check) and their reduction: the 2-D engine's
+from segmpm.mpm.step import B_BAD, B_GDOT, B_I, B_NU, B_ROWS, B_S, B_SPEED, _reduce_block
 from segmpm.mpm.transfer import _balance, counting_sort
 from segmpm.segregation.closures import (
     M_NONE,
@@ -188,21 +192,26 @@ def slab_index(P, prm, nslabs):
 # 2. P2G
 
 
+#: the nodal P2G fields as unsigned offsets (unsigned indices: no negative-index wrap)
+U_M = np.uint64(F_M)
+U_P = np.uint64(F_P)
+U_P1 = np.uint64(F_P + 1)
+U_P2 = np.uint64(F_P + 2)
+U_F = np.uint64(F_F)
+U_F1 = np.uint64(F_F + 1)
+U_F2 = np.uint64(F_F + 2)
+U_VP = np.uint64(F_VP)
+U_NF = np.uint64(NF)
+
+
 @njit(cache=True, error_model="numpy", inline="always")
-def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, g, prm, ny, nz, with_force):
+def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, g, h, ih, x0, y0, z0, nx, ny, nz,
+                   periodic, with_force):  # fmt: skip
     """P2G of point p onto its 3 × 3 (× 3) nodes (``g``: the flat nodal array)."""
-    pr = prm[0]
-    h = pr.h
-    ih = 1.0 / h
-    nx = pr.nodes[0]
-    periodic = pr.periodic_x != 0
-    bx, wx0, wx1, wx2, dx0, dx1, dx2, fx = bspline2_frac((x[0, p] - pr.origin[0]) * ih)
-    by, wy0, wy1, wy2, dy0, dy1, dy2, fy = bspline2_frac((x[1, p] - pr.origin[1]) * ih)
-    if D == 3:
-        zp = x[2, p]
-    else:
-        zp = 0.0
-    bz, wz0, wz1, wz2, dz0, dz1, dz2, fz = _z_axis(zp, pr.origin[2], ih)
+    bx, wx0, wx1, wx2, dx0, dx1, dx2, fx = bspline2_frac((x[0, p] - x0) * ih)
+    by, wy0, wy1, wy2, dy0, dy1, dy2, fy = bspline2_frac((x[1, p] - y0) * ih)
+    zp = x[2, p] if D == 3 else 0.0
+    bz, wz0, wz1, wz2, dz0, dz1, dz2, fz = _z_axis(zp, z0, ih)
     wx = (wx0, wx1, wx2)
     dx = (dx0, dx1, dx2)
     wy = (wy0, wy1, wy2)
@@ -211,9 +220,15 @@ def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, g, prm, ny, nz, with_fo
     dz = (dz0, dz1, dz2)
     m = mass[p]
     vol = vol0[p] * J[p]
-    # −V σ·∇w with ∇w per grid unit: the 1/h is folded into the stress
+    # −V σ·∇w with ∇w per grid unit: −V/h is folded into the stress
     fv = -vol * ih
     sxx, syy, szz, sxy, sxz, syz = _sym(sig, p)
+    sxx *= fv
+    syy *= fv
+    szz *= fv
+    sxy *= fv
+    sxz *= fv
+    syz *= fv
     vp = vol * pres[p]
     vx, vy, vz = _vec(v, p)
     cxx, cxy, cxz, cyx, cyy, cyz, czx, czy, czz = _mat(C, p)
@@ -226,9 +241,8 @@ def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, g, prm, ny, nz, with_fo
             j = by + b
             ey = (b - fy) * h
             wab = wx[a] * wy[b]
-            ga = fv * dx[a] * wy[b]
-            gb = fv * wx[a] * dy[b]
-            gc = fv * wab
+            ga = dx[a] * wy[b]
+            gb = wx[a] * dy[b]
             # per column: the in-plane part of the affine velocity and of σ·∇w
             mx = vx + cxx * ex + cxy * ey
             my = vy + cyx * ex + cyy * ey
@@ -236,31 +250,31 @@ def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, g, prm, ny, nz, with_fo
             tx = sxx * ga + sxy * gb
             ty = sxy * ga + syy * gb
             tz = sxz * ga + syz * gb
-            k0 = ((i * ny + j) * nz + bz) * NF
+            k0 = np.uint64(((i * ny + j) * nz + bz) * NF)
             for c in range(SZ):
-                k = k0 + c * NF
+                k = k0 + np.uint64(c) * U_NF
                 wc = wz[c]
                 mw = m * wab * wc
-                g[k + F_M] += mw
+                g[k + U_M] += mw
                 if D == 3:
                     ez = (c - fz) * h
-                    g[k + F_P] += mw * (mx + cxz * ez)
-                    g[k + F_P + 1] += mw * (my + cyz * ez)
-                    g[k + F_P + 2] += mw * (mz + czz * ez)
+                    g[k + U_P] += mw * (mx + cxz * ez)
+                    g[k + U_P1] += mw * (my + cyz * ez)
+                    g[k + U_P2] += mw * (mz + czz * ez)
                 else:
-                    g[k + F_P] += mw * mx
-                    g[k + F_P + 1] += mw * my
+                    g[k + U_P] += mw * mx
+                    g[k + U_P1] += mw * my
                 if with_force:
                     if D == 3:
-                        dc = dz[c]
-                        g[k + F_F] += wc * tx + dc * gc * sxz
-                        g[k + F_F + 1] += wc * ty + dc * gc * syz
-                        g[k + F_F + 2] += wc * tz + dc * gc * szz
+                        dc = dz[c] * wab
+                        g[k + U_F] += wc * tx + dc * sxz
+                        g[k + U_F1] += wc * ty + dc * syz
+                        g[k + U_F2] += wc * tz + dc * szz
                     else:
-                        g[k + F_F] += tx
-                        g[k + F_F + 1] += ty
+                        g[k + U_F] += tx
+                        g[k + U_F1] += ty
                 if D == 2:
-                    g[k + F_VP] += wab * vp
+                    g[k + U_VP] += wab * vp
 
 
 @njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
@@ -286,6 +300,14 @@ def p2g(P, G, prm, with_force):
     order = G.order
     bounds = G.bounds
     slab_start = G.slab_start
+    pr = prm[0]
+    h = pr.h
+    ih = 1.0 / h
+    x0 = pr.origin[0]
+    y0 = pr.origin[1]
+    z0 = pr.origin[2]
+    nx = pr.nodes[0]
+    periodic = pr.periodic_x != 0
     for colour in range(2):
         nc = (ns - colour + 1) // 2
         _balance(slab_start, colour, nc, bounds)
@@ -293,8 +315,8 @@ def p2g(P, G, prm, with_force):
             for k in range(bounds[t], bounds[t + 1]):
                 s = colour + 2 * k
                 for q in range(slab_start[s], slab_start[s + 1]):
-                    _scatter_point(order[q], x, v, C, mass, vol0, J, sig, pres, g, prm, ny, nz,
-                                   with_force)  # fmt: skip
+                    _scatter_point(order[q], x, v, C, mass, vol0, J, sig, pres, g, h, ih, x0,
+                                   y0, z0, nx, ny, nz, periodic, with_force)  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------
@@ -357,6 +379,16 @@ def _mirror_index(i, j, k, axis, kw, side):
     return 2 * kw - c
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _behind(axis, kw, side, nx, ny, nz):
+    """Index ranges (i, j, k: lo, hi) of the nodes behind the plane ``kw`` of ``axis``."""
+    n = nx if axis == 0 else (ny if axis == 1 else nz)
+    lo = 0 if side < 0 else kw + 1
+    hi = kw if side < 0 else n
+    return ((lo, hi) if axis == 0 else (0, nx), (lo, hi) if axis == 1 else (0, ny),
+            (lo, hi) if axis == 2 else (0, nz))  # fmt: skip
+
+
 @njit(cache=True, error_model="numpy")
 def fold_images(G, planes, prm, ramp):
     """The P2G sums of a node behind a wall folded onto its mirror node (mass +, each momentum
@@ -369,9 +401,10 @@ def fold_images(G, planes, prm, ramp):
     grav = (pr.gravity[0] * ramp, pr.gravity[1], pr.gravity[2])
     for r in range(planes.shape[0]):
         axis, kw, side, noslip = planes[r, 0], planes[r, 1], planes[r, 2], planes[r, 3]
-        for i in range(nx):
-            for j in range(ny):
-                for k in range(nz):
+        ri, rj, rk = _behind(axis, kw, side, nx, ny, nz)
+        for i in range(ri[0], ri[1]):
+            for j in range(rj[0], rj[1]):
+                for k in range(rk[0], rk[1]):
                     mi = _mirror_index(i, j, k, axis, kw, side)
                     if mi < 0:
                         continue
@@ -411,9 +444,10 @@ def mirror_images(G, planes):
     nx, ny, nz = gv.shape[0], gv.shape[1], gv.shape[2]
     for r in range(planes.shape[0]):
         axis, kw, side, noslip = planes[r, 0], planes[r, 1], planes[r, 2], planes[r, 3]
-        for i in range(nx):
-            for j in range(ny):
-                for k in range(nz):
+        ri, rj, rk = _behind(axis, kw, side, nx, ny, nz)
+        for i in range(ri[0], ri[1]):
+            for j in range(rj[0], rj[1]):
+                for k in range(rk[0], rk[1]):
                     mi = _mirror_index(i, j, k, axis, kw, side)
                     if mi < 0:
                         continue
@@ -503,141 +537,177 @@ def grid_update(G, prm, dt, ramp):
     sw = pr.sidewall * ramp
     uw = pr.sidewall_speed
     sw0 = pr.sidewall_slow * ramp if uw > 0.0 else sw
-    nodes = G.nodes  # arrays out of the records before a parallel loop (docs/architecture.md)
-    gv = G.gv
+    # the arrays out of the records before a parallel loop (docs/architecture.md), flat
+    gf = G.nodes.reshape(G.nodes.size)
+    gvf = G.gv.reshape(G.gv.size)
     for i in prange(nx):
         xn = x0 + i * h
         for j in range(ny):
             yn = y0 + j * h
             for k in range(nz):
                 zn = z0 + k * h
-                nd = nodes[i, j, k]
-                out = gv[i, j, k]
-                m = nd[F_M]
+                q = ((i * ny + j) * nz + k) * NF
+                o = ((i * ny + j) * nz + k) * NV
+                m = gf[q + F_M]
                 if m <= 0.0:
-                    out[:] = 0.0
+                    for a in range(NV):
+                        gvf[o + a] = 0.0
                     continue
                 im = 1.0 / m
-                ox = nd[F_P] * im
-                oy = nd[F_P + 1] * im
-                oz = nd[F_P + 2] * im if D == 3 else 0.0
-                vx = ox + dt * (nd[F_F] * im + gx)
-                vy = oy + dt * (nd[F_F + 1] * im + gy)
-                vz = oz + dt * (nd[F_F + 2] * im + gz) if D == 3 else 0.0
-                if D == 2 and (sw > 0.0 or sw0 > 0.0) and nd[F_VP] > 0.0:
-                    vx, vy = sidewall_drag(vx, vy, sw, sw0, uw, dt, nd[F_VP], im)
+                ox = gf[q + F_P] * im
+                oy = gf[q + F_P + 1] * im
+                oz = gf[q + F_P + 2] * im if D == 3 else 0.0
+                vx = ox + dt * (gf[q + F_F] * im + gx)
+                vy = oy + dt * (gf[q + F_F + 1] * im + gy)
+                vz = oz + dt * (gf[q + F_F + 2] * im + gz) if D == 3 else 0.0
+                if D == 2 and (sw > 0.0 or sw0 > 0.0) and gf[q + F_VP] > 0.0:
+                    vx, vy = sidewall_drag(vx, vy, sw, sw0, uw, dt, gf[q + F_VP], im)
                 vx, vy, vz = apply_planes(prm, xn, yn, zn, vx, vy, vz)
                 # the old velocity gets the same constraints: the FLIP increment on a
                 # constrained node is then only the physical change
                 ox, oy, oz = apply_planes(prm, xn, yn, zn, ox, oy, oz)
-                out[V_NEW] = vx
-                out[V_NEW + 1] = vy
-                out[V_OLD] = ox
-                out[V_OLD + 1] = oy
+                gvf[o + V_NEW] = vx
+                gvf[o + V_NEW + 1] = vy
+                gvf[o + V_OLD] = ox
+                gvf[o + V_OLD + 1] = oy
                 if D == 3:
-                    out[V_NEW + 2] = vz
-                    out[V_OLD + 2] = oz
+                    gvf[o + V_NEW + 2] = vz
+                    gvf[o + V_OLD + 2] = oz
 
 
 # ---------------------------------------------------------------------------------------------
 # 4. G2P
 
 
+#: the nodal velocity lanes as unsigned offsets (unsigned indices: no negative-index wrap)
+U_NEW = np.uint64(V_NEW)
+U_NEW1 = np.uint64(V_NEW + 1)
+U_NEW2 = np.uint64(V_NEW + 2)
+U_OLD = np.uint64(V_OLD)
+U_OLD1 = np.uint64(V_OLD + 1)
+U_OLD2 = np.uint64(V_OLD + 2)
+
+
 @njit(cache=True, error_model="numpy", inline="always")
-def gather(xp, p, gvf, prm, ny, nz):
-    """Sums over the stencil of point p: Σ w v (new, old), B = Σ w v (x_i − x_p)ᵀ and
-    L = Σ v ⊗ ∇w, each as full 3-D tuples (row-major matrices)."""
-    pr = prm[0]
-    h = pr.h
-    ih = 1.0 / h
-    nx = pr.nodes[0]
-    periodic = pr.periodic_x != 0
-    bx, wx0, wx1, wx2, dx0, dx1, dx2, fx = bspline2_frac((xp[0, p] - pr.origin[0]) * ih)
-    by, wy0, wy1, wy2, dy0, dy1, dy2, fy = bspline2_frac((xp[1, p] - pr.origin[1]) * ih)
+def _dot3(w, a, b, c):
+    """w · (a, b, c) for a triple of stencil factors w."""
+    return w[0] * a + w[1] * b + w[2] * c
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _ycolumn(gvf, k, sy, wy, dy, ey):
+    """Sums over the three nodes of one y column (``k`` the lanes of its lowest node, ``sy`` the
+    lane stride along y): Σ w_y v, Σ w_y v_old, Σ w_y′ v and Σ e_y v (e_y = w_y (y_b − y_p)),
+    each as an (x, y, z) triple with zeros out of plane in 2-D."""
+    n0 = np.uint64(k)
+    n1 = n0 + np.uint64(sy)
+    n2 = n1 + np.uint64(sy)
+    ax = gvf[n0 + U_NEW]
+    bx = gvf[n1 + U_NEW]
+    cx = gvf[n2 + U_NEW]
+    ay = gvf[n0 + U_NEW1]
+    by = gvf[n1 + U_NEW1]
+    cy = gvf[n2 + U_NEW1]
+    wox = _dot3(wy, gvf[n0 + U_OLD], gvf[n1 + U_OLD], gvf[n2 + U_OLD])
+    woy = _dot3(wy, gvf[n0 + U_OLD1], gvf[n1 + U_OLD1], gvf[n2 + U_OLD1])
     if D == 3:
-        zp = xp[2, p]
+        az = gvf[n0 + U_NEW2]
+        bz = gvf[n1 + U_NEW2]
+        cz = gvf[n2 + U_NEW2]
+        woz = _dot3(wy, gvf[n0 + U_OLD2], gvf[n1 + U_OLD2], gvf[n2 + U_OLD2])
+        wvz = _dot3(wy, az, bz, cz)
+        dvz = _dot3(dy, az, bz, cz)
+        evz = _dot3(ey, az, bz, cz)
     else:
-        zp = 0.0
-    bz, wz0, wz1, wz2, dz0, dz1, dz2, fz = _z_axis(zp, pr.origin[2], ih)
-    wx = (wx0, wx1, wx2)
-    dx = (dx0, dx1, dx2)
+        woz = wvz = dvz = evz = 0.0
+    return (_dot3(wy, ax, bx, cx), _dot3(wy, ay, by, cy), wvz,
+            wox, woy, woz,
+            _dot3(dy, ax, bx, cx), _dot3(dy, ay, by, cy), dvz,
+            _dot3(ey, ax, bx, cx), _dot3(ey, ay, by, cy), evz)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _xplane(gvf, k, sy, wy, dy, ey, wz, dz, ez):
+    """Sums over the 3 × 3 (y, z) nodes of one x index (``k`` the lanes of node (·, b_y, b_z);
+    ``wy`` … ``ez`` the y and z factors as triples): Σ w_y w_z v (3), Σ w_y w_z v_old (3),
+    Σ w_y′ w_z v (3), Σ e_y w_z v (3), Σ w_y w_z′ v (3), Σ w_y e_z v (3); the last six zero
+    in 2-D (one z node of weight 1)."""
+    if D == 3:
+        a = _ycolumn(gvf, k, sy, wy, dy, ey)
+        b = _ycolumn(gvf, k + NV, sy, wy, dy, ey)
+        c = _ycolumn(gvf, k + 2 * NV, sy, wy, dy, ey)
+        return (_dot3(wz, a[0], b[0], c[0]), _dot3(wz, a[1], b[1], c[1]),
+                _dot3(wz, a[2], b[2], c[2]), _dot3(wz, a[3], b[3], c[3]),
+                _dot3(wz, a[4], b[4], c[4]), _dot3(wz, a[5], b[5], c[5]),
+                _dot3(wz, a[6], b[6], c[6]), _dot3(wz, a[7], b[7], c[7]),
+                _dot3(wz, a[8], b[8], c[8]), _dot3(wz, a[9], b[9], c[9]),
+                _dot3(wz, a[10], b[10], c[10]), _dot3(wz, a[11], b[11], c[11]),
+                _dot3(dz, a[0], b[0], c[0]), _dot3(dz, a[1], b[1], c[1]),
+                _dot3(dz, a[2], b[2], c[2]), _dot3(ez, a[0], b[0], c[0]),
+                _dot3(ez, a[1], b[1], c[1]), _dot3(ez, a[2], b[2], c[2]))  # fmt: skip
+    a = _ycolumn(gvf, k, sy, wy, dy, ey)
+    return (a[0], a[1], 0.0, a[3], a[4], 0.0, a[6], a[7], 0.0, a[9], a[10], 0.0,
+            0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def gather(px, py, pz, gvf, h, ih, x0, y0, z0, nx, ny, nz, periodic):
+    """The stencil sums of the point at (px, py, pz): Σ w v (new, old), B = Σ w v (x_i − x_p)ᵀ
+    and L = Σ v ⊗ ∇w, as full 3-D tuples (row-major matrices; zeros out of plane in 2-D).
+    Separably, with the weights w = w_x w_y w_z: sums along the y columns first, then along z
+    (3-D), then across x; unsigned node offsets."""
+    bx, wx0, wx1, wx2, dx0, dx1, dx2, fx = bspline2_frac((px - x0) * ih)
+    by, wy0, wy1, wy2, dy0, dy1, dy2, fy = bspline2_frac((py - y0) * ih)
+    bz, wz0, wz1, wz2, dz0, dz1, dz2, fz = _z_axis(pz, z0, ih)
+    # w (x_i − x_p) along each axis: node a of the stencil lies at (a − f) h
+    ex = (-fx * h * wx0, (1.0 - fx) * h * wx1, (2.0 - fx) * h * wx2)
+    ey = (-fy * h * wy0, (1.0 - fy) * h * wy1, (2.0 - fy) * h * wy2)
+    ez = (-fz * h * wz0, (1.0 - fz) * h * wz1, (2.0 - fz) * h * wz2)
     wy = (wy0, wy1, wy2)
     dy = (dy0, dy1, dy2)
     wz = (wz0, wz1, wz2)
     dz = (dz0, dz1, dz2)
-    ux = uy = uz = 0.0
-    ox = oy = oz = 0.0
-    bxx = bxy = bxz = byx = byy = byz = bzx = bzy = bzz = 0.0
-    lxx = lxy = lxz = lyx = lyy = lyz = lzx = lzy = lzz = 0.0
-    # w (x_i − x_p)_z along z: node c lies at (c − f_z) h
-    ez = ((0.0 - fz) * h * wz0, (1.0 - fz) * h * wz1, (2.0 - fz) * h * wz2)
-    for a in range(3):
-        i = bx + a
-        if periodic:
-            i = _wrap(i, nx)
-        ex = (a - fx) * h
-        for b in range(3):
-            j = by + b
-            ey = (b - fy) * h
-            # sums along the z column first (separable weights): Σ w_z v, Σ w_z′ v, Σ w_z e_z v
-            k = ((i * ny + j) * nz + bz) * NV
-            if D == 3:
-                cx = cy = cz = cox = coy = coz = 0.0
-                gxs = gys = gzs = 0.0
-                exs = eys = ezs = 0.0
-                for c in range(3):
-                    q = k + c * NV
-                    wc = wz[c]
-                    vx_ = gvf[q + V_NEW]
-                    vy_ = gvf[q + V_NEW + 1]
-                    vz_ = gvf[q + V_NEW + 2]
-                    cx += wc * vx_
-                    cy += wc * vy_
-                    cz += wc * vz_
-                    cox += wc * gvf[q + V_OLD]
-                    coy += wc * gvf[q + V_OLD + 1]
-                    coz += wc * gvf[q + V_OLD + 2]
-                    gxs += dz[c] * vx_
-                    gys += dz[c] * vy_
-                    gzs += dz[c] * vz_
-                    exs += ez[c] * vx_
-                    eys += ez[c] * vy_
-                    ezs += ez[c] * vz_
-            else:
-                cx = gvf[k + V_NEW]
-                cy = gvf[k + V_NEW + 1]
-                cox = gvf[k + V_OLD]
-                coy = gvf[k + V_OLD + 1]
-                cz = coz = gxs = gys = gzs = exs = eys = ezs = 0.0
-            wab = wx[a] * wy[b]
-            ga = dx[a] * wy[b] * ih
-            gb = wx[a] * dy[b] * ih
-            ux += wab * cx
-            uy += wab * cy
-            uz += wab * cz
-            ox += wab * cox
-            oy += wab * coy
-            oz += wab * coz
-            wex = wab * ex
-            wey = wab * ey
-            bxx += wex * cx
-            bxy += wey * cx
-            bxz += wab * exs
-            byx += wex * cy
-            byy += wey * cy
-            byz += wab * eys
-            bzx += wex * cz
-            bzy += wey * cz
-            bzz += wab * ezs
-            lxx += ga * cx
-            lxy += gb * cx
-            lxz += wab * ih * gxs
-            lyx += ga * cy
-            lyy += gb * cy
-            lyz += wab * ih * gys
-            lzx += ga * cz
-            lzy += gb * cz
-            lzz += wab * ih * gzs
+    i0 = bx
+    i1 = bx + 1
+    i2 = bx + 2
+    if periodic:
+        i0 = _wrap(i0, nx)
+        i1 = _wrap(i1, nx)
+        i2 = _wrap(i2, nx)
+    sy = nz * NV
+    a = _xplane(gvf, ((i0 * ny + by) * nz + bz) * NV, sy, wy, dy, ey, wz, dz, ez)
+    b = _xplane(gvf, ((i1 * ny + by) * nz + bz) * NV, sy, wy, dy, ey, wz, dz, ez)
+    c = _xplane(gvf, ((i2 * ny + by) * nz + bz) * NV, sy, wy, dy, ey, wz, dz, ez)
+    wx = (wx0, wx1, wx2)
+    dx = (dx0, dx1, dx2)
+    ux = _dot3(wx, a[0], b[0], c[0])
+    uy = _dot3(wx, a[1], b[1], c[1])
+    ox = _dot3(wx, a[3], b[3], c[3])
+    oy = _dot3(wx, a[4], b[4], c[4])
+    # B row-major: its x column from e_x, its y column from the e_y sums, z from the e_z sums
+    bxx = _dot3(ex, a[0], b[0], c[0])
+    byx = _dot3(ex, a[1], b[1], c[1])
+    bxy = _dot3(wx, a[9], b[9], c[9])
+    byy = _dot3(wx, a[10], b[10], c[10])
+    lxx = ih * _dot3(dx, a[0], b[0], c[0])
+    lyx = ih * _dot3(dx, a[1], b[1], c[1])
+    lxy = ih * _dot3(wx, a[6], b[6], c[6])
+    lyy = ih * _dot3(wx, a[7], b[7], c[7])
+    if D == 2:
+        return (ux, uy, 0.0, ox, oy, 0.0, bxx, bxy, 0.0, byx, byy, 0.0, 0.0, 0.0, 0.0,
+                lxx, lxy, 0.0, lyx, lyy, 0.0, 0.0, 0.0, 0.0)  # fmt: skip
+    uz = _dot3(wx, a[2], b[2], c[2])
+    oz = _dot3(wx, a[5], b[5], c[5])
+    bzx = _dot3(ex, a[2], b[2], c[2])
+    bzy = _dot3(wx, a[11], b[11], c[11])
+    bxz = _dot3(wx, a[15], b[15], c[15])
+    byz = _dot3(wx, a[16], b[16], c[16])
+    bzz = _dot3(wx, a[17], b[17], c[17])
+    lzx = ih * _dot3(dx, a[2], b[2], c[2])
+    lzy = ih * _dot3(wx, a[8], b[8], c[8])
+    lxz = ih * _dot3(wx, a[12], b[12], c[12])
+    lyz = ih * _dot3(wx, a[13], b[13], c[13])
+    lzz = ih * _dot3(wx, a[14], b[14], c[14])
     return (ux, uy, uz, ox, oy, oz, bxx, bxy, bxz, byx, byy, byz, bzx, bzy, bzz,
             lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz)  # fmt: skip
 
@@ -704,8 +774,10 @@ def g2p(P, G, prm, dt, nslabs):
     J = P.J
     flags = P.flags
     cursor = P.cursor
+    h = pr.h
     for p in prange(x.shape[1]):
-        r = gather(x, p, gvf, prm, ny, nz)
+        zp = x[2, p] if D == 3 else 0.0
+        r = gather(x[0, p], x[1, p], zp, gvf, h, ih, x0, y0, z0, nx, ny, nz, periodic)
         ux, uy, uz, ox, oy, oz = r[0], r[1], r[2], r[3], r[4], r[5]
         if aflip:
             v[0, p] = alpha * (v[0, p] + ux - ox) + (1.0 - alpha) * ux
@@ -907,7 +979,21 @@ def _kinematics(L, e, dt):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def fei_tensor(mat, L, e, J, phi, dt):
+def _or_gas(gas, third, r):
+    """The gas state where ``gas`` (I₁ ≤ 0: no contacts, no stress, the volumetric strain
+    keeps tracking the density; γ̇ kept), else the law's result ``r``: one select per
+    component, no branch, so that the loop over points vectorises."""
+    v = -third
+    z = 0.0
+    return (v if gas else r[0], v if gas else r[1], v if gas else r[2], z if gas else r[3],
+            z if gas else r[4], z if gas else r[5], z if gas else r[6], z if gas else r[7],
+            z if gas else r[8], z if gas else r[9], z if gas else r[10], z if gas else r[11],
+            z if gas else r[12], r[13], z if gas else r[14], z if gas else r[15],
+            z if gas else r[16], z if gas else r[17])  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def fei_tensor(mat, L, e, J, phi, dt, linear):
     """Stress update of one point, Fei et al. 2016 (docs/model.md §1) in full tensor form.
 
     ``L`` the velocity gradient (row-major 3×3), ``e`` the elastic strain (xx, yy, zz, xy, xz,
@@ -915,7 +1001,11 @@ def fei_tensor(mat, L, e, J, phi, dt):
     ε + Δt (d + w ε − ε w); the yield cap √I₂ ≤ r_c I₁/q_φ on the deviator; the Jiang–Liu stress
     σ^e = −p_e 1 + C √I₁ ε⁰; the dissipative σ^d = 2 η d′ with η = a d̄^b ρ_s^{b/2} p_e^{1−b/2}
     γ̇^{b−1} (d̄ = φ_s d_s + (1 − φ_s) d_l); a bulk viscosity ζ ρ c h tr d; the gas state (no
-    stress) for I₁ ≤ 0. Returns (ε⁶, σ⁶, p_e, γ̇, I, S, c, ν)."""
+    stress) for I₁ ≤ 0. Returns (ε⁶, σ⁶, p_e, γ̇, I, S, c, ν).
+
+    ``linear``: b = 1 (η = a d̄ √(ρ_s p_e), no powers); a compile-time constant in the material
+    pass, as is the model, so that the loop over points vectorises. The gas state is selected at
+    the end rather than returned early, for the same reason."""
     dpxx, dpyy, dpzz, dxy, dxz, dyz, trd, gdot, exx, eyy, ezz, exy, exz, eyz = _kinematics(
         L, e, dt)  # fmt: skip
     t3 = (exx + eyy + ezz) * THIRD
@@ -936,23 +1026,19 @@ def fei_tensor(mat, L, e, J, phi, dt):
     e0yz = eyz * s
     I2 = cap * cap if over else I2
     third = I1 * THIRD
-    if I1 <= 0.0:
-        # gas: no contacts, no stress; the volumetric strain keeps tracking the density
-        v = -third
-        return (v, v, v, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-                0.0, gdot, 0.0, 0.0, 0.0, 0.0)  # fmt: skip
+    gas = I1 <= 0.0  # no contacts, no stress: selected at the end
     A = mat.a
     Cj = mat.c
     rho_s = mat.rho_s
     rho = mat.f * rho_s / J
-    sq = fsqrt(I1)
+    sq = fsqrt(I1 if I1 > 0.0 else 1.0)
     pe = 2.5 * A * I1 * sq + 0.5 * Cj * I2 / sq
     G2 = Cj * sq
     dbar = phi * mat.ds + (1.0 - phi) * mat.dl
     spe = fsqrt(rho_s * pe)
     a = mat.mu_a * mat.sdf
     b = mat.mu_b
-    if b == 1.0:
+    if linear:
         eta = a * dbar * spe
     else:
         g = max(gdot, mat.gfloor)
@@ -978,8 +1064,9 @@ def fei_tensor(mat, L, e, J, phi, dt):
         S = -2.0 * eta * dpyy
     S *= mat.kappa
     nu = (eta + zeta) * J * mat.irho0
-    return (e0xx - third, e0yy - third, e0zz - third, e0xy, e0xz, e0yz,
-            sxx, syy, szz, sxy, sxz, syz, pe, gdot, inertial, S, c, nu)  # fmt: skip
+    r = (e0xx - third, e0yy - third, e0zz - third, e0xy, e0xz, e0yz,
+         sxx, syy, szz, sxy, sxz, syz, pe, gdot, inertial, S, c, nu)  # fmt: skip
+    return _or_gas(gas, third, r)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -1015,15 +1102,12 @@ def ngf_tensor(mat, L, e, J, phi, g, dt):
                 + 2.0 * (exy * exy + exz * exz + eyz * eyz))  # fmt: skip
     I1 = -flog(J)
     third = I1 * THIRD
-    if I1 <= 0.0:
-        v = -third
-        return (v, v, v, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-                0.0, gdot, 0.0, 0.0, 0.0, 0.0)  # fmt: skip
+    gas = I1 <= 0.0  # selected at the end (fei_tensor)
     A = mat.a
     Cj = mat.c
     rho_s = mat.rho_s
     rho = mat.f * rho_s / J
-    sq = fsqrt(I1)
+    sq = fsqrt(I1 if I1 > 0.0 else 1.0)
     isq = 1.0 / sq
     a0 = 2.5 * A * I1 * sq
     k = 0.5 * Cj * sq * dt * g
@@ -1072,30 +1156,58 @@ def ngf_tensor(mat, L, e, J, phi, g, dt):
         S = mat.kappa_g * rho * (g * dbar) ** 2
     S *= mat.kappa
     nu = zeta * J * mat.irho0
-    return (e0xx - third, e0yy - third, e0zz - third, e0xy, e0xz, e0yz,
-            sxx, syy, szz, sxy, sxz, syz, pe, gdot, inertial, S, c, nu)  # fmt: skip
+    r = (e0xx - third, e0yy - third, e0zz - third, e0xy, e0xz, e0yz,
+         sxx, syy, szz, sxy, sxz, syz, pe, gdot, inertial, S, c, nu)  # fmt: skip
+    return _or_gas(gas, third, r)
+
+
+#: the constitutive laws, each a compile-time constant of the material pass (``law``)
+LAW_ELASTIC = VAR_ELASTIC
+LAW_FEI = VAR_FEI_LINEAR  # Fei et al. 2016 with b = 1
+LAW_FEI_POWER = VAR_FEI_POWER  # the same with b ≠ 1
+LAW_NGF = VAR_NGF  # Jiang–Liu elasticity with the fluidity flow rule (nonlocal rheology)
+#: points per block of the material pass (the update loop vectorises within a block)
+BLOCK = 512
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def law_of(mat):
+    """The law of the record (``LAW_*``), chosen at set-up by ``mat.kind`` and b."""
+    m = mat[0]
+    if m.kind == KIND_FEI2016_NGF:
+        return LAW_NGF
+    if m.kind == KIND_FEI2016:
+        return LAW_FEI if m.mu_b == 1.0 else LAW_FEI_POWER
+    return LAW_ELASTIC
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def law(which, mat, L, e, J, phi, g, dt):
+    """The constitutive law ``which`` (``LAW_*``, a constant where the material pass calls it):
+    the extension point for a new model (docs/architecture.md). A function of (record, L, ε,
+    J, φ_s, g, Δt) with the return contract of :func:`fei_tensor` (``g`` the point's fluidity,
+    read by the nonlocal law only)."""
+    m = mat[0]
+    if which == LAW_FEI:
+        return fei_tensor(m, L, e, J, phi, dt, True)
+    if which == LAW_NGF:
+        return ngf_tensor(m, L, e, J, phi, g, dt)
+    if which == LAW_FEI_POWER:
+        return fei_tensor(m, L, e, J, phi, dt, False)
+    return elastic_tensor(m, L, e, J, phi, dt)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def material(mat, L, e, J, phi, g, dt):
-    """The constitutive law chosen at set-up (``mat.kind``): the extension point for a new model
-    (docs/architecture.md): a function of (record, L, ε, J, φ_s, g, Δt) with this return
-    contract (``g`` the point's fluidity, read by the nonlocal law only)."""
-    m = mat[0]
-    if m.kind == KIND_FEI2016:
-        return fei_tensor(m, L, e, J, phi, dt)
-    if m.kind == KIND_FEI2016_NGF:
-        return ngf_tensor(m, L, e, J, phi, g, dt)
-    return elastic_tensor(m, L, e, J, phi, dt)
+    """The law of the record at one point (dispatched at run time: tests and diagnostics)."""
+    return law(law_of(mat), mat, L, e, J, phi, g, dt)
 
 
-@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
-def update_stress(P, mat, dt, full):
-    """The material law at every point from ``P.lg`` (L of G2P), the subcycle integrals and the
-    step check. Returns (status, first failing point or −1, max c + |v|, max ν); the failing point
-    is the first in index order (a min-reduction), independent of the thread count. The output
-    diagnostics (``diag`` rows 1–5) are written when ``full`` and for a failing point."""
-    x = P.x
+@njit(cache=True, error_model="numpy", inline="always")
+def _stress_block(which, lo, m, buf, P, mat, dt):
+    """The material update of points lo … lo + m − 1 with the law ``which`` (a constant): state,
+    stress and p_e stored, the diagnostics and the step check (1.0: failed) into ``buf``.
+    Unsigned indices (no negative-index wrap), no call and no reduction: the loop vectorises."""
     v = P.v
     J = P.J
     eps = P.eps
@@ -1107,12 +1219,11 @@ def update_stress(P, mat, dt, full):
     lg = P.lg
     flags = P.flags
     gf = P.gf
-    n = x.shape[1]
-    smax = 0.0
-    numax = 0.0
-    bad = n
-    for p in prange(n):
-        r = material(mat, _mat(lg, p), _sym(eps, p), J[p], phi[p], gf[p], dt)
+    base = np.uint64(lo)
+    for u in range(np.uint64(m)):
+        p = base + u
+        Jp = J[p]
+        r = law(which, mat, _mat(lg, p), _sym(eps, p), Jp, phi[p], gf[p], dt)
         _put_sym(eps, p, r[0], r[1], r[2], r[3], r[4], r[5])
         _put_sym(sig, p, r[6], r[7], r[8], r[9], r[10], r[11])
         diag[0, p] = r[12]
@@ -1121,17 +1232,55 @@ def update_stress(P, mat, dt, full):
         vx, vy, vz = _vec(v, p)
         speed = r[16] + fsqrt(vx * vx + vy * vy + vz * vz)
         ok = (flags[p] == ST_OK and math.isfinite(speed)
-              and math.isfinite(r[6] + r[7] + r[8] + r[9] + r[10] + r[11]) and J[p] > 0.0)  # fmt: skip
-        if full or not ok:
-            diag[1, p] = r[13]
-            diag[2, p] = r[14]
-            diag[3, p] = r[15]
-            diag[4, p] = speed
-            diag[5, p] = r[17]
-        if not ok:
-            bad = min(bad, p)
-        smax = max(smax, speed)
-        numax = max(numax, r[17])
+              and math.isfinite(r[6] + r[7] + r[8] + r[9] + r[10] + r[11]) and Jp > 0.0)  # fmt: skip
+        buf[B_GDOT, u] = r[13]
+        buf[B_I, u] = r[14]
+        buf[B_S, u] = r[15]
+        buf[B_SPEED, u] = speed
+        buf[B_NU, u] = r[17]
+        buf[B_BAD, u] = 0.0 if ok else 1.0
+
+
+@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
+def update_stress(P, mat, dt, full, threads):
+    """The material law at every point from ``P.lg`` (L of G2P), the subcycle integrals and the
+    step check. Returns (status, first failing point or −1, max c + |v|, max ν); the failing point
+    is the first in index order (a min-reduction), independent of the thread count. The output
+    diagnostics (``diag`` rows 1–5) are written when ``full`` and for a failing point.
+
+    Blocks of points in parallel; in each, the update loop with the law a constant
+    (:func:`_stress_block`, vectorised) and then a short scalar reduction
+    (``segmpm.mpm.step._reduce_block``: the largest c + |v| and ν, the first failing point, the
+    diagnostics of every point if ``full``, else of the failing ones).
+    ``threads`` only sets the block size (at least two blocks per thread); no result depends on
+    it."""
+    x = P.x
+    J = P.J
+    sig = P.sig
+    diag = P.diag
+    flags = P.flags
+    n = x.shape[1]
+    which = law_of(mat)
+    size = max(8, min(BLOCK, 8 * ((n + 16 * threads - 1) // (16 * threads))))
+    smax = 0.0
+    numax = 0.0
+    bad = n
+    for blk in prange((n + size - 1) // size):
+        lo = blk * size
+        m = min(size, n - lo)
+        buf = np.empty((B_ROWS, size))
+        if which == LAW_FEI:
+            _stress_block(LAW_FEI, lo, m, buf, P, mat, dt)
+        elif which == LAW_NGF:
+            _stress_block(LAW_NGF, lo, m, buf, P, mat, dt)
+        elif which == LAW_FEI_POWER:
+            _stress_block(LAW_FEI_POWER, lo, m, buf, P, mat, dt)
+        else:
+            _stress_block(LAW_ELASTIC, lo, m, buf, P, mat, dt)
+        bs, bn, bb = _reduce_block(lo, m, n, buf, diag, full)
+        smax = max(smax, bs)
+        numax = max(numax, bn)
+        bad = min(bad, bb)
     if bad >= n:
         return ST_OK, -1, smax, numax
     ok_state = math.isfinite(diag[4, bad]) and J[bad] > 0.0
@@ -1149,7 +1298,7 @@ def prime(P, mat):
     P.flags[:] = ST_OK
     s = P.s_int.copy()
     g = P.g_int.copy()
-    update_stress(P, mat, 0.0, True)
+    update_stress(P, mat, 0.0, True, 1)
     P.s_int[:] = s
     P.g_int[:] = g
 
@@ -1813,7 +1962,7 @@ def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
         g2p(P, G, prm, dt, nslabs)  # 4. G2P, advection
         if prm[0].dilatation != 0:
             smooth_dilatation(P, G, prm, dt)  #    volumetric smoothing of L, then J
-        status, idx, smax, numax = update_stress(P, mat, dt, last)  # 5. material law
+        status, idx, smax, numax = update_stress(P, mat, dt, last, threads)  # 5. material law
 
         clk.time = t + dt
         clk.step += 1
