@@ -819,8 +819,7 @@ def test_material_pass_is_the_point_law_at_every_point(dim, law):
 
 
 @pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="x86 instruction names")
-@pytest.mark.parametrize("dim", [2, 3])
-@pytest.mark.parametrize("law", ["fei-b1", "nonlocal"])
+@pytest.mark.parametrize(("dim", "law"), [(2, "fei-b1"), (3, "nonlocal")])
 def test_material_loop_is_vectorised(dim, law):
     """The material pass's update loop, with the b = 1 or the nonlocal law as the constant of
     the block, compiles to packed (SIMD) square roots. A call, a power or an early return in a

@@ -1298,7 +1298,10 @@ def prime(P, mat):
     P.flags[:] = ST_OK
     s = P.s_int.copy()
     g = P.g_int.copy()
-    update_stress(P, mat, 0.0, True, 1)
+    # the argument types of the call in advance (bool, int64), not the literals True and 1:
+    # a literal argument would compile a second copy of the pass (docs/performance.md)
+    one = np.int64(1)
+    update_stress(P, mat, 0.0, one > 0, one)
     P.s_int[:] = s
     P.g_int[:] = g
 
