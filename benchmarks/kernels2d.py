@@ -69,7 +69,7 @@ def generic(n_points: int):
     dt = float(clock[0]["dt"])
     calls = {
         "sort": lambda: k.counting_sort(P.cursor, G.slab_start, G.order, nt),
-        "p2g": lambda: k.p2g(P, G, prm, True),
+        "p2g": lambda: k.p2g(P, G, prm, False),
         "images": lambda: (k.fold_images(G, planes, prm, 1.0), k.mirror_images(G, planes)),
         "grid_update": lambda: k.grid_update(G, prm, dt, 1.0),
         "g2p": lambda: k.g2p(P, G, prm, dt, nslabs),

@@ -118,7 +118,7 @@ COUPLED = {
     ("segregation", "model"),
     ("segregation", "driver"),
     ("grid", "volumetric_smoothing"),  # "on" needs 3-D
-    ("grid", "engine"),  # "generic" has no flip transfer, column or test scenarios (test_engine)
+    ("grid", "engine"),  # "generic" has no column solver (test_engine)
 }
 
 BOOL_WORDS = {"true", "false", "yes", "no", "on", "off", "y", "n", "t", "f", "1", "0"}

@@ -95,7 +95,7 @@ class GridConfig(_Section):
     volumetric_smoothing: Literal["auto", "on", "off"] = "auto"
     #: the MPM engine: "auto" (2-D: the production plane-strain engine, segmpm.mpm; 3-D: the
     #: dimension-generic engine, segmpm.engine) or "generic" (the dimension-generic engine in 2-D
-    #: too: the same kernels as 3-D with D = 2; no grid.transfer = "flip", no column solver;
+    #: too: the same kernels as 3-D with D = 2; no column solver, no test scenarios bar/box;
     #: docs/architecture.md, "One engine: where 2-D stands").
     engine: Literal["auto", "generic"] = "auto"
     #: threads of the compiled loop: "auto" (one below 20 000 points, else the cores this process
@@ -433,10 +433,9 @@ class Config(_Section):
     def _check_generic(self, what: str) -> None:
         """What the dimension-generic engine supports today (docs/architecture.md)."""
         need = {
-            "scenario.kind": (self.scenario.kind, ("chute", "collapse")),
+            "scenario.kind": (self.scenario.kind, ("chute", "collapse", "box", "bar")),
             "scenario.solver": (self.scenario.solver, ("mpm",)),
             "material.rheology": (self.material.rheology, ("local", "nonlocal")),
-            "grid.transfer": (self.grid.transfer, ("aflip", "apic")),
         }
         for key, (value, allowed) in need.items():
             if value not in allowed:
@@ -459,6 +458,8 @@ class Config(_Section):
                     f"(≥ 2) of grid.cell_size = {h} cells across the modelled width (got {n:.6g})"
                 )
             pts = g.length * g.depth * wm / (h / self.grid.particles_per_cell) ** 3
+        elif self.scenario.kind in ("box", "bar"):
+            pts = g.length * g.depth * g.width / (h / self.grid.particles_per_cell) ** 3
         else:
             pts = 0.785 * g.column_width**2 * g.column_height / (
                 h / self.grid.particles_per_cell) ** 3  # fmt: skip

@@ -14,8 +14,10 @@ Order of a step (:func:`advance`, docs/architecture.md):
    a wall folded onto their mirror nodes (image nodes);
 3. grid update: v* = (m v + Δt (f + m g))/m, the 2-D sidewall body force, the boundary planes;
    and the image nodes' velocities from their mirrors;
-4. G2P: APIC/AFLIP velocity, affine matrix C, velocity gradient L, advection, J; with the
-   volumetric smoothing, tr L mapped to the grid and back before J;
+4. G2P: APIC/AFLIP velocity, affine matrix C, velocity gradient L, advection, J; with MUSL
+   (``grid.transfer = "flip"``) the updated momenta are scattered again from the old positions
+   and L is taken there; with the volumetric smoothing, tr L mapped to the grid and back
+   before J;
 5. material law (Fei et al. 2016, Jiang–Liu elasticity + yield cap + μ(I), or the fluidity flow
    rule of the nonlocal rheology) and the step check; with the nonlocal rheology, every
    ``material.fluidity_dt`` the fluidity update (diffusion on the grid, local relaxation);
@@ -52,6 +54,7 @@ from segmpm.mpm.params import (
     ST_NONFINITE,
     ST_OK,
     TRANSFER_AFLIP,
+    TRANSFER_FLIP,
 )
 from segmpm.mpm.shape import bspline2_frac
 
@@ -205,15 +208,68 @@ U_NF = np.uint64(NF)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _scatter_x(g, kx, sy, ex, wxa, dxa, wy, dy, fy, wz, dz, fz, h, m, vp, vel, cm, s6,
+               with_force):  # fmt: skip
+    """P2G onto the 3 × 3 (y, z) nodes of one x index of the stencil (``kx`` the lanes of node
+    (i, b_y, b_z), ``sy`` the lane stride along y; ``ex`` = x_i − x_p, ``wxa``, ``dxa`` the x
+    factors of w and ∇w; ``wy`` … ``dz`` the y and z factors as triples; ``vel``, ``cm``, ``s6``
+    the point's v, C and −V σ/h)."""
+    vx, vy, vz = vel
+    cxx, cxy, cxz, cyx, cyy, cyz, czx, czy, czz = cm
+    sxx, syy, szz, sxy, sxz, syz = s6
+    # the x part of the affine velocity
+    ax = vx + cxx * ex
+    ay = vy + cyx * ex
+    az = vz + czx * ex
+    for b in range(3):
+        ey = (b - fy) * h
+        wab = wxa * wy[b]
+        ga = dxa * wy[b]
+        gb = wxa * dy[b]
+        # per column: the in-plane part of the affine velocity and of σ·∇w
+        mx = ax + cxy * ey
+        my = ay + cyy * ey
+        mz = az + czy * ey
+        tx = sxx * ga + sxy * gb
+        ty = sxy * ga + syy * gb
+        tz = sxz * ga + syz * gb
+        k0 = kx + np.uint64(b) * sy
+        for c in range(SZ):
+            k = k0 + np.uint64(c) * U_NF
+            wc = wz[c]
+            mw = m * wab * wc
+            g[k + U_M] += mw
+            if D == 3:
+                ez = (c - fz) * h
+                g[k + U_P] += mw * (mx + cxz * ez)
+                g[k + U_P1] += mw * (my + cyz * ez)
+                g[k + U_P2] += mw * (mz + czz * ez)
+            else:
+                g[k + U_P] += mw * mx
+                g[k + U_P1] += mw * my
+            if with_force:
+                if D == 3:
+                    dc = dz[c] * wab
+                    g[k + U_F] += wc * tx + dc * sxz
+                    g[k + U_F1] += wc * ty + dc * syz
+                    g[k + U_F2] += wc * tz + dc * szz
+                else:
+                    g[k + U_F] += tx
+                    g[k + U_F1] += ty
+            if D == 2:
+                g[k + U_VP] += wab * vp
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, g, h, ih, x0, y0, z0, nx, ny, nz,
                    periodic, with_force):  # fmt: skip
-    """P2G of point p onto its 3 × 3 (× 3) nodes (``g``: the flat nodal array)."""
+    """P2G of point p onto its 3 × 3 (× 3) nodes (``g``: the flat nodal array), one x index of
+    the stencil at a time (written out: a loop over them stays a loop, with its factors in
+    memory)."""
     bx, wx0, wx1, wx2, dx0, dx1, dx2, fx = bspline2_frac((x[0, p] - x0) * ih)
     by, wy0, wy1, wy2, dy0, dy1, dy2, fy = bspline2_frac((x[1, p] - y0) * ih)
     zp = x[2, p] if D == 3 else 0.0
     bz, wz0, wz1, wz2, dz0, dz1, dz2, fz = _z_axis(zp, z0, ih)
-    wx = (wx0, wx1, wx2)
-    dx = (dx0, dx1, dx2)
     wy = (wy0, wy1, wy2)
     dy = (dy0, dy1, dy2)
     wz = (wz0, wz1, wz2)
@@ -223,63 +279,30 @@ def _scatter_point(p, x, v, C, mass, vol0, J, sig, pres, g, h, ih, x0, y0, z0, n
     # −V σ·∇w with ∇w per grid unit: −V/h is folded into the stress
     fv = -vol * ih
     sxx, syy, szz, sxy, sxz, syz = _sym(sig, p)
-    sxx *= fv
-    syy *= fv
-    szz *= fv
-    sxy *= fv
-    sxz *= fv
-    syz *= fv
+    s6 = (sxx * fv, syy * fv, szz * fv, sxy * fv, sxz * fv, syz * fv)
     vp = vol * pres[p]
-    vx, vy, vz = _vec(v, p)
-    cxx, cxy, cxz, cyx, cyy, cyz, czx, czy, czz = _mat(C, p)
-    for a in range(3):
-        i = bx + a
-        if periodic:
-            i = _wrap(i, nx)
-        ex = (a - fx) * h
-        for b in range(3):
-            j = by + b
-            ey = (b - fy) * h
-            wab = wx[a] * wy[b]
-            ga = dx[a] * wy[b]
-            gb = wx[a] * dy[b]
-            # per column: the in-plane part of the affine velocity and of σ·∇w
-            mx = vx + cxx * ex + cxy * ey
-            my = vy + cyx * ex + cyy * ey
-            mz = vz + czx * ex + czy * ey
-            tx = sxx * ga + sxy * gb
-            ty = sxy * ga + syy * gb
-            tz = sxz * ga + syz * gb
-            k0 = np.uint64(((i * ny + j) * nz + bz) * NF)
-            for c in range(SZ):
-                k = k0 + np.uint64(c) * U_NF
-                wc = wz[c]
-                mw = m * wab * wc
-                g[k + U_M] += mw
-                if D == 3:
-                    ez = (c - fz) * h
-                    g[k + U_P] += mw * (mx + cxz * ez)
-                    g[k + U_P1] += mw * (my + cyz * ez)
-                    g[k + U_P2] += mw * (mz + czz * ez)
-                else:
-                    g[k + U_P] += mw * mx
-                    g[k + U_P1] += mw * my
-                if with_force:
-                    if D == 3:
-                        dc = dz[c] * wab
-                        g[k + U_F] += wc * tx + dc * sxz
-                        g[k + U_F1] += wc * ty + dc * syz
-                        g[k + U_F2] += wc * tz + dc * szz
-                    else:
-                        g[k + U_F] += tx
-                        g[k + U_F1] += ty
-                if D == 2:
-                    g[k + U_VP] += wab * vp
+    vel = _vec(v, p)
+    cm = _mat(C, p)
+    i0 = bx
+    i1 = bx + 1
+    i2 = bx + 2
+    if periodic:
+        i0 = _wrap(i0, nx)
+        i1 = _wrap(i1, nx)
+        i2 = _wrap(i2, nx)
+    sy = np.uint64(nz * NF)
+    _scatter_x(g, np.uint64(((i0 * ny + by) * nz + bz) * NF), sy, -fx * h, wx0, dx0, wy, dy, fy,
+               wz, dz, fz, h, m, vp, vel, cm, s6, with_force)  # fmt: skip
+    _scatter_x(g, np.uint64(((i1 * ny + by) * nz + bz) * NF), sy, (1.0 - fx) * h, wx1, dx1, wy,
+               dy, fy, wz, dz, fz, h, m, vp, vel, cm, s6, with_force)  # fmt: skip
+    _scatter_x(g, np.uint64(((i2 * ny + by) * nz + bz) * NF), sy, (2.0 - fx) * h, wx2, dx2, wy,
+               dy, fy, wz, dz, fz, h, m, vp, vel, cm, s6, with_force)  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
-def p2g(P, G, prm, with_force):
+def p2g(P, G, prm, remap):
     """Scatter mass, APIC momentum m(v + C(x_i − x_p)), internal force −Σ V σ·∇w and Σ w V p.
+    ``remap`` (MUSL): mass and momentum only, at the positions before G2P (``P.x_old``).
 
     Slabs of one colour (even, then odd) scatter concurrently, each its points in index order:
     every node receives its contributions in the same order on any number of threads."""
@@ -289,7 +312,10 @@ def p2g(P, G, prm, with_force):
     ny = G.nodes.shape[1]
     nz = G.nodes.shape[2]
     nt = G.bounds.shape[0] - 1
-    x = P.x
+    if remap and P.x_old.shape[1] != P.x.shape[1]:
+        raise ValueError("p2g(remap=True) needs P.x_old for every point (grid.transfer = 'flip')")
+    with_force = not remap
+    x = P.x_old if remap else P.x
     v = P.v
     C = P.C
     mass = P.mass
@@ -743,14 +769,16 @@ def _inside(xi, yi, zi, nx, ny, nz, periodic):
 @njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
 def g2p(P, G, prm, dt, nslabs):
     """G2P (APIC, or AFLIP: the FLIP increment blended with α), advection, C = (4/h²) B, L, J
-    (J later, from the smoothed L, with ``prm.dilatation``)."""
+    (J later, from the smoothed L, with ``prm.dilatation``). MUSL (``TRANSFER_FLIP``): the
+    velocity blend of AFLIP and the advection only; ``musl_gradient`` gives L and J."""
     ny = G.gv.shape[1]
     nz = G.gv.shape[2]
     gvf = G.gv.reshape(G.gv.size)
     pr = prm[0]
     ih = 1.0 / pr.h
     k4 = 4.0 * ih * ih
-    aflip = pr.transfer == TRANSFER_AFLIP
+    musl = pr.transfer == TRANSFER_FLIP
+    aflip = pr.transfer == TRANSFER_AFLIP or musl
     alpha = pr.flip
     smooth = pr.dilatation != 0
     lx = pr.length_x
@@ -801,6 +829,12 @@ def g2p(P, G, prm, dt, nslabs):
         x[1, p] = yn
         if D == 3:
             x[2, p] = zn
+        ok = math.isfinite(xn + yn + zn) and _inside((xn - x0) * ih, (yn - y0) * ih,
+                                                     (zn - z0) * ih, nx, ny_, nz_, periodic)  # fmt: skip
+        flags[p] = ST_OK if ok else ST_LEFT_GRID
+        cursor[p] = slab_of(yn, y0, ih, nslabs)
+        if musl:  # C stays 0; L and J from the remapped velocities (musl_gradient)
+            continue
         bxx, bxy, bxz, byx, byy, byz, bzx, bzy, bzz = r[6:15]
         lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz = r[15:24]
         if D == 3:
@@ -818,10 +852,72 @@ def g2p(P, G, prm, dt, nslabs):
             lg[3, p] = lyy
         if not smooth:  # else J is advanced with the smoothed L (smooth_dilatation)
             J[p] = det_update(J[p], dt, lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz)
-        ok = math.isfinite(xn + yn + zn) and _inside((xn - x0) * ih, (yn - y0) * ih,
-                                                     (zn - z0) * ih, nx, ny_, nz_, periodic)  # fmt: skip
-        flags[p] = ST_OK if ok else ST_LEFT_GRID
-        cursor[p] = slab_of(yn, y0, ih, nslabs)
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def momentum_to_velocity(G, prm):
+    """MUSL remap: the nodal velocity m v / m of the re-scattered point momenta (``p2g`` with
+    ``remap``), with the boundary planes, into the new-velocity lanes."""
+    nx, ny, nz = G.nodes.shape[0], G.nodes.shape[1], G.nodes.shape[2]
+    pr = prm[0]
+    h = pr.h
+    x0 = pr.origin[0]
+    y0 = pr.origin[1]
+    z0 = pr.origin[2]
+    gf = G.nodes.reshape(G.nodes.size)
+    gvf = G.gv.reshape(G.gv.size)
+    for i in prange(nx):
+        for j in range(ny):
+            for k in range(nz):
+                q = ((i * ny + j) * nz + k) * NF
+                o = ((i * ny + j) * nz + k) * NV
+                m = gf[q + F_M]
+                vx = vy = vz = 0.0
+                if m > 0.0:
+                    vx = gf[q + F_P] / m
+                    vy = gf[q + F_P + 1] / m
+                    vz = gf[q + F_P + 2] / m if D == 3 else 0.0
+                    vx, vy, vz = apply_planes(prm, x0 + i * h, y0 + j * h, z0 + k * h, vx, vy,
+                                              vz)  # fmt: skip
+                gvf[o + V_NEW] = vx
+                gvf[o + V_NEW + 1] = vy
+                if D == 3:
+                    gvf[o + V_NEW + 2] = vz
+
+
+@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
+def musl_gradient(P, G, prm, dt):
+    """MUSL: the velocity gradient L = Σ v_i ⊗ ∇w_i of the remapped nodal velocities at the
+    positions before G2P (``P.x_old``), and J det(I + Δt L) (unless ``prm.dilatation``, which
+    advances J from the smoothed L)."""
+    ny = G.gv.shape[1]
+    nz = G.gv.shape[2]
+    gvf = G.gv.reshape(G.gv.size)
+    pr = prm[0]
+    h = pr.h
+    ih = 1.0 / h
+    smooth = pr.dilatation != 0
+    periodic = pr.periodic_x != 0
+    x0 = pr.origin[0]
+    y0 = pr.origin[1]
+    z0 = pr.origin[2]
+    nx = pr.nodes[0]
+    xo = P.x_old
+    lg = P.lg
+    J = P.J
+    for p in prange(xo.shape[1]):
+        zp = xo[2, p] if D == 3 else 0.0
+        r = gather(xo[0, p], xo[1, p], zp, gvf, h, ih, x0, y0, z0, nx, ny, nz, periodic)
+        lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz = r[15:24]
+        if D == 3:
+            _put_mat3(lg, p, lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz)
+        else:
+            lg[0, p] = lxx
+            lg[1, p] = lxy
+            lg[2, p] = lyx
+            lg[3, p] = lyy
+        if not smooth:
+            J[p] = det_update(J[p], dt, lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -943,38 +1039,59 @@ THIRD = 1.0 / 3.0
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _shear_sq(xy, xz, yz):
+    """xy² + xz² + yz² of a symmetric tensor's shear components (xy² in 2-D).
+
+    The out-of-plane terms of the laws are written under ``if D == 3`` (here and in
+    :func:`_kinematics`, :func:`fei_tensor`, :func:`ngf_tensor`): IEEE arithmetic cannot drop
+    0 · x or x + 0 (x could be NaN, −0), so a zero component left in an expression costs its
+    operations at run time; in 2-D they were a fifth of the material pass."""
+    if D == 3:
+        return xy * xy + xz * xz + yz * yz
+    return xy * xy
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def _kinematics(L, e, dt):
     """The rate of deformation of L and the objective predictor of ε: the deviatoric rate d′
     (xx, yy, zz), the shear rates d (xy, xz, yz), tr d, γ̇ = √(2 d′:d′), and the Jaumann
-    predictor ε + Δt (d + w ε − ε w) (xx, yy, zz, xy, xz, yz)."""
+    predictor ε + Δt (d + w ε − ε w) (xx, yy, zz, xy, xz, yz). In 2-D (plane strain: L and ε
+    have no xz, yz and L no zz) the z terms are left out (:func:`_shear_sq`)."""
     lxx, lxy, lxz, lyx, lyy, lyz, lzx, lzy, lzz = L
     exx, eyy, ezz, exy, exz, eyz = e
     dxy = 0.5 * (lxy + lyx)
-    dxz = 0.5 * (lxz + lzx)
-    dyz = 0.5 * (lyz + lzy)
     wxy = 0.5 * (lxy - lyx)
-    wxz = 0.5 * (lxz - lzx)
-    wyz = 0.5 * (lyz - lzy)
-    trd = lxx + lyy + lzz
+    dxz = dyz = wxz = wyz = 0.0
+    trd = lxx + lyy
+    if D == 3:
+        dxz = 0.5 * (lxz + lzx)
+        dyz = 0.5 * (lyz + lzy)
+        wxz = 0.5 * (lxz - lzx)
+        wyz = 0.5 * (lyz - lzy)
+        trd += lzz
     t3 = trd * THIRD
     dpxx = lxx - t3
     dpyy = lyy - t3
-    dpzz = lzz - t3
+    dpzz = lzz - t3 if D == 3 else -t3
     gdot = fsqrt(2.0 * (dpxx * dpxx + dpyy * dpyy + dpzz * dpzz
-                        + 2.0 * (dxy * dxy + dxz * dxz + dyz * dyz)))  # fmt: skip
+                        + 2.0 * _shear_sq(dxy, dxz, dyz)))  # fmt: skip
     # Jaumann predictor: w ε − ε w = M + Mᵀ with M = w ε
-    mxx = wxy * exy + wxz * exz
-    myy = -wxy * exy + wyz * eyz
-    mzz = -wxz * exz - wyz * eyz
-    qxy = wxy * eyy + wxz * eyz - wxy * exx + wyz * exz
-    qxz = wxy * eyz + wxz * ezz - wxz * exx - wyz * exy
-    qyz = -wxy * exz + wyz * ezz - wxz * exy - wyz * eyy
+    mxx = wxy * exy
+    myy = -wxy * exy
+    qxy = wxy * eyy - wxy * exx
+    if D == 3:
+        mxx += wxz * exz
+        myy += wyz * eyz
+        mzz = -wxz * exz - wyz * eyz
+        qxy += wxz * eyz + wyz * exz
+        qxz = wxy * eyz + wxz * ezz - wxz * exx - wyz * exy
+        qyz = -wxy * exz + wyz * ezz - wxz * exy - wyz * eyy
+        ezz = ezz + dt * (lzz + 2.0 * mzz)
+        exz = exz + dt * (dxz + qxz)
+        eyz = eyz + dt * (dyz + qyz)
     exx = exx + dt * (lxx + 2.0 * mxx)
     eyy = eyy + dt * (lyy + 2.0 * myy)
-    ezz = ezz + dt * (lzz + 2.0 * mzz)
     exy = exy + dt * (dxy + qxy)
-    exz = exz + dt * (dxz + qxz)
-    eyz = eyz + dt * (dyz + qyz)
     return dpxx, dpyy, dpzz, dxy, dxz, dyz, trd, gdot, exx, eyy, ezz, exy, exz, eyz
 
 
@@ -1012,8 +1129,7 @@ def fei_tensor(mat, L, e, J, phi, dt, linear):
     e0xx = exx - t3
     e0yy = eyy - t3
     e0zz = ezz - t3
-    I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz
-                + 2.0 * (exy * exy + exz * exz + eyz * eyz))  # fmt: skip
+    I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz + 2.0 * _shear_sq(exy, exz, eyz))
     I1 = -flog(J)
     cap = mat.capr * I1
     over = I2 > cap * cap
@@ -1022,8 +1138,8 @@ def fei_tensor(mat, L, e, J, phi, dt, linear):
     e0yy *= s
     e0zz *= s
     e0xy = exy * s
-    e0xz = exz * s
-    e0yz = eyz * s
+    e0xz = exz * s if D == 3 else 0.0
+    e0yz = eyz * s if D == 3 else 0.0
     I2 = cap * cap if over else I2
     third = I1 * THIRD
     gas = I1 <= 0.0  # no contacts, no stress: selected at the end
@@ -1051,8 +1167,8 @@ def fei_tensor(mat, L, e, J, phi, dt, linear):
     syy = G2 * e0yy + 2.0 * eta * dpyy + vol
     szz = G2 * e0zz + 2.0 * eta * dpzz + vol
     sxy = G2 * e0xy + 2.0 * eta * dxy
-    sxz = G2 * e0xz + 2.0 * eta * dxz
-    syz = G2 * e0yz + 2.0 * eta * dyz
+    sxz = G2 * e0xz + 2.0 * eta * dxz if D == 3 else 0.0
+    syz = G2 * e0yz + 2.0 * eta * dyz if D == 3 else 0.0
     driver = int(mat.driver)
     if driver == DRIVER_A:
         S = eta * gdot
@@ -1079,7 +1195,8 @@ def elastic_tensor(mat, L, e, J, phi, dt):
     rho = mat.f * mat.rho_s / J
     c = math.sqrt((lam + 2.0 * mu) / rho)
     return (exx, eyy, ezz, exy, exz, eyz, lam * tr + 2.0 * mu * exx, lam * tr + 2.0 * mu * eyy,
-            lam * tr + 2.0 * mu * ezz, 2.0 * mu * exy, 2.0 * mu * exz, 2.0 * mu * eyz,
+            lam * tr + 2.0 * mu * ezz, 2.0 * mu * exy, 2.0 * mu * exz if D == 3 else 0.0,
+            2.0 * mu * eyz if D == 3 else 0.0,
             -tr * (lam + 2.0 * mu / 3.0), 0.0, 0.0, 0.0, c, 0.0)  # fmt: skip
 
 
@@ -1098,8 +1215,7 @@ def ngf_tensor(mat, L, e, J, phi, g, dt):
     e0xx = exx - t3
     e0yy = eyy - t3
     e0zz = ezz - t3
-    I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz
-                + 2.0 * (exy * exy + exz * exz + eyz * eyz))  # fmt: skip
+    I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz + 2.0 * _shear_sq(exy, exz, eyz))
     I1 = -flog(J)
     third = I1 * THIRD
     gas = I1 <= 0.0  # selected at the end (fei_tensor)
@@ -1127,8 +1243,8 @@ def ngf_tensor(mat, L, e, J, phi, g, dt):
     e0yy *= f
     e0zz *= f
     e0xy = exy * f
-    e0xz = exz * f
-    e0yz = eyz * f
+    e0xz = exz * f if D == 3 else 0.0
+    e0yz = eyz * f if D == 3 else 0.0
     pe = 2.5 * A * I1 * sq + 0.5 * Cj * I2 * isq
     G2 = Cj * sq
     dbar = phi * mat.ds + (1.0 - phi) * mat.dl
@@ -1141,8 +1257,8 @@ def ngf_tensor(mat, L, e, J, phi, g, dt):
     syy = G2 * e0yy + vol
     szz = G2 * e0zz + vol
     sxy = G2 * e0xy
-    sxz = G2 * e0xz
-    syz = G2 * e0yz
+    sxz = G2 * e0xz if D == 3 else 0.0
+    syz = G2 * e0yz if D == 3 else 0.0
     driver = int(mat.driver)
     if driver == DRIVER_A:
         S = mat.ngf_b * inertial * pe  # the rate-dependent part b I p of the local law
@@ -1230,9 +1346,13 @@ def _stress_block(which, lo, m, buf, P, mat, dt):
         s_int[p] += r[15] * dt
         g_int[p] += r[13] * dt
         vx, vy, vz = _vec(v, p)
-        speed = r[16] + fsqrt(vx * vx + vy * vy + vz * vz)
-        ok = (flags[p] == ST_OK and math.isfinite(speed)
-              and math.isfinite(r[6] + r[7] + r[8] + r[9] + r[10] + r[11]) and Jp > 0.0)  # fmt: skip
+        v2 = vx * vx + vy * vy
+        ssum = r[6] + r[7] + r[8] + r[9]
+        if D == 3:  # (out-of-plane terms: _shear_sq)
+            v2 += vz * vz
+            ssum += r[10] + r[11]
+        speed = r[16] + fsqrt(v2)
+        ok = flags[p] == ST_OK and math.isfinite(speed) and math.isfinite(ssum) and Jp > 0.0
         buf[B_GDOT, u] = r[13]
         buf[B_I, u] = r[14]
         buf[B_S, u] = r[15]
@@ -1942,6 +2062,7 @@ def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
     threads = G.bounds.shape[0] - 1
     planes = image_planes(prm)
     nonlocal_on = mat[0].kind == KIND_FEI2016_NGF
+    musl = prm[0].transfer == TRANSFER_FLIP
     steps = 0
     while steps < max_steps and clk.time < t_stop:
         t = clk.time
@@ -1958,11 +2079,19 @@ def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
         if steps == 0:
             slab_index(P, prm, nslabs)  # 1. sort (G2P keeps the slabs afterwards)
         counting_sort(P.cursor, G.slab_start, G.order, threads)
-        p2g(P, G, prm, True)  # 2. P2G
+        p2g(P, G, prm, False)  # 2. P2G
         fold_images(G, planes, prm, ramp)  #    image nodes behind the walls
         grid_update(G, prm, dt, ramp)  # 3. grid update, boundaries
         mirror_images(G, planes)
+        if musl:
+            P.x_old[:, :] = P.x
         g2p(P, G, prm, dt, nslabs)  # 4. G2P, advection
+        if musl:  # 4a. MUSL: remap the new momenta (old positions), L from them, then J
+            p2g(P, G, prm, True)
+            fold_images(G, planes, prm, 0.0)
+            momentum_to_velocity(G, prm)
+            mirror_images(G, planes)
+            musl_gradient(P, G, prm, dt)
         if prm[0].dilatation != 0:
             smooth_dilatation(P, G, prm, dt)  #    volumetric smoothing of L, then J
         status, idx, smax, numax = update_stress(P, mat, dt, last, threads)  # 5. material law

@@ -33,6 +33,8 @@ g_int     (N,)       ∫ γ̇ dt over the current segregation subcycle
 lg        (D·D, N)   velocity gradient L of the last G2P (work)
 flags     (N,)       per-point status of the last G2P (work)
 cursor    (N,)       P2G slab of each point (work)
+x_old     (D, N)     positions before the step's G2P, for the MUSL remap (work; (D, 0)
+                     unless ``grid.transfer = "flip"``)
 ========= ========== ================================================================
 """
 
@@ -65,8 +67,8 @@ PARAMS = np.dtype(
         ("length_x", "f8"),
         ("gravity", "f8", (3,)),  # slope-frame gravity, m/s²
         ("ramp", "f8"),  # ramp time of tangential gravity and sidewall friction, s
-        ("transfer", "i8"),  # 0 APIC, 2 AFLIP (segmpm.mpm.params TRANSFER_*)
-        ("flip", "f8"),  # FLIP fraction α of AFLIP
+        ("transfer", "i8"),  # 0 APIC, 1 MUSL FLIP/PIC, 2 AFLIP (segmpm.mpm.params TRANSFER_*)
+        ("flip", "f8"),  # FLIP fraction α of AFLIP and FLIP
         ("cfl", "f8"),
         ("visc", "f8"),  # Δt ≤ visc h²/(2 ν_max)
         ("dt_max", "f8"),
@@ -184,6 +186,7 @@ class Points(NamedTuple):
     lg: np.ndarray
     flags: np.ndarray
     cursor: np.ndarray
+    x_old: np.ndarray
 
 
 #: arrays of Points that define the physical state (checkpointed); the rest is work

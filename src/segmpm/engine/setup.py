@@ -10,6 +10,8 @@
 * ``collapse``: 2-D the column L₀ × H₀ against the wall x = 0; 3-D an axisymmetric column of
   radius r₀ = ``geometry.column_width`` and height H₀ = ``geometry.column_height`` on a rough base,
   one quarter of it, with symmetry planes x = 0 and z = 0, in the domain [0, length]².
+* ``box`` and ``bar``: the verification bodies (a periodic floating layer; an elastic bar
+  clamped at x = 0), in 3-D with the cross-section ``geometry.depth`` × ``geometry.width``.
 
 docs/architecture.md gives the layout, docs/model.md the physics.
 """
@@ -24,7 +26,7 @@ import numpy as np
 from ..config import Config
 from ..materials import pack_material
 from ..materials.params import KIND_FEI2016_NGF, M_KIND
-from ..mpm.params import TRANSFER_AFLIP, TRANSFER_APIC
+from ..mpm.params import TRANSFER_AFLIP, TRANSFER_APIC, TRANSFER_FLIP
 from ..scenarios.builders import GHOST, _initial_strain, gravity_vector, wave_speed_floor
 from .records import CLOCK, CONC, PARAMS, PLANE_CODES, Grid, Points, Segregation, material_record
 
@@ -81,7 +83,9 @@ def _params(cfg: Config, dim: int, origin, nodes, periodic: bool) -> np.ndarray:
     gx, gy = gravity_vector(cfg)
     prm["gravity"][:] = (gx, gy, 0.0)
     prm["ramp"] = b.ramp_time
-    prm["transfer"] = {"apic": TRANSFER_APIC, "aflip": TRANSFER_AFLIP}[cfg.grid.transfer]
+    prm["transfer"] = {"apic": TRANSFER_APIC, "aflip": TRANSFER_AFLIP, "flip": TRANSFER_FLIP}[
+        cfg.grid.transfer
+    ]
     prm["flip"] = cfg.grid.flip_fraction
     prm["cfl"] = cfg.time.cfl
     prm["visc"] = cfg.time.viscous_number
@@ -172,7 +176,65 @@ def build_collapse(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray
     return x, vol, prm
 
 
-BUILDERS = {"chute": build_chute, "collapse": build_collapse}
+def build_box(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray]:
+    """Periodic layer of depth H floating in the middle of the grid (no base, no sidewall
+    force): free fall and momentum tests (the 2-D production builder's box). 3-D: across
+    0 ≤ z ≤ ``geometry.width`` between open planes, with ``geometry.headroom`` × W of grid on
+    either side."""
+    g = cfg.geometry
+    h = cfg.grid.cell_size
+    nx = round(g.length / h)
+    s = h / cfg.grid.particles_per_cell
+    bottom = g.headroom * g.depth
+    ny = _ny(g.depth * (1 + 2 * g.headroom), h)
+    if dim == 2:
+        x, vol = lattice((0.0, bottom), (nx * h, bottom + g.depth), s)
+        return x, vol, _params(cfg, 2, (0.0, -GHOST * h, 0.0), (nx, ny, 1), True)
+    pad = int(math.ceil(g.headroom * g.width / h)) + GHOST
+    x, vol = lattice((0.0, bottom, 0.0), (nx * h, bottom + g.depth, g.width), s)
+    nz = int(math.ceil(g.width / h)) + 2 * pad + 1
+    prm = _params(cfg, 3, (0.0, -GHOST * h, -pad * h), (nx, ny, nz), True)
+    prm["zlo_kind"] = prm["zhi_kind"] = PLANE_CODES["open"]
+    return x, vol, prm
+
+
+def build_bar(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray]:
+    """Elastic bar of length L along x, clamped at x = 0 (a no-slip plane), free at x = L; no
+    gravity, no sidewall force (docs/model.md §3). 3-D: its cross-section is ``geometry.depth``
+    × ``geometry.width``, free on every side."""
+    g = cfg.geometry
+    h = cfg.grid.cell_size
+    s = h / cfg.grid.particles_per_cell
+    nxc = int(math.ceil(g.length * (1 + g.headroom) / h))
+    origin = (-GHOST * h, -GHOST * h, -GHOST * h if dim == 3 else 0.0)
+    ny = _ny(g.depth, h)
+    if dim == 2:
+        x, vol = lattice((0.0, 0.0), (g.length, g.depth), s)
+        prm = _params(cfg, 2, origin, (nxc + 2 * GHOST + 1, ny, 1), False)
+    else:
+        x, vol = lattice((0.0, 0.0, 0.0), (g.length, g.depth, g.width), s)
+        nz = int(math.ceil(g.width / h)) + 2 * GHOST + 1
+        prm = _params(cfg, 3, origin, (nxc + 2 * GHOST + 1, ny, nz), False)
+        prm["zlo_kind"] = prm["zhi_kind"] = PLANE_CODES["open"]
+    prm["base_kind"] = PLANE_CODES["open"]
+    prm["xlo_kind"], prm["xlo"] = PLANE_CODES["noslip"], 0.0
+    prm["gravity"][:] = 0.0
+    return x, vol, prm
+
+
+def initial_velocity(cfg: Config, x: np.ndarray) -> np.ndarray:
+    """The initial velocity of the points at ``x`` (D, N): ``scenario.velocity`` v₀ along x for
+    the box, the bar's first mode v₀ sin(πx/2L); at rest otherwise."""
+    v = np.zeros_like(x)
+    kind = cfg.scenario.kind
+    if kind == "box":
+        v[0] = cfg.scenario.velocity
+    elif kind == "bar":
+        v[0] = cfg.scenario.velocity * np.sin(np.pi * x[0] / (2 * cfg.geometry.length))
+    return v
+
+
+BUILDERS = {"chute": build_chute, "collapse": build_collapse, "box": build_box, "bar": build_bar}
 
 
 def segregation_grid(cfg: Config, prm: np.ndarray, x: np.ndarray, nwork: int) -> Segregation:
@@ -226,8 +288,11 @@ def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
     n = x.shape[1]
     mp = pack_material(cfg)
     rho = cfg.material.solid_fraction * cfg.material.grain_density
-    top = cfg.geometry.depth if kind == "chute" else cfg.geometry.column_height
-    p_yy = rho * (-prm["gravity"][0, 1]) * (top - x[1])
+    if kind in ("chute", "collapse"):  # geostatic
+        top = cfg.geometry.depth if kind == "chute" else cfg.geometry.column_height
+        p_yy = rho * (-prm["gravity"][0, 1]) * (top - x[1])
+    else:  # the test bodies start stress-free
+        p_yy = np.zeros(n)
     eps4, J = _initial_strain(cfg, mp, p_yy)  # (xx, yy, xy, zz) of the 2-D builders
     ne = 4 if dim == 2 else 6
     eps = np.zeros((ne, n))
@@ -238,12 +303,14 @@ def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
     mass = rho * vol0
     prm["c_floor"] = wave_speed_floor(cfg, mp, float(np.max(p_yy)) if n else 0.0)
     pts = Points(
-        x=np.ascontiguousarray(x), v=np.zeros((dim, n)), C=np.zeros((dim * dim, n)),
+        x=np.ascontiguousarray(x), v=initial_velocity(cfg, x), C=np.zeros((dim * dim, n)),
         mass=mass, vol0=vol0, J=np.ascontiguousarray(J, dtype=np.float64), eps=eps,
         sig=np.zeros((ne, n)), phi=np.full(n, cfg.mixture.phi_small_initial), gf=np.zeros(n),
         diag=np.zeros((6, n)), s_int=np.zeros(n), g_int=np.zeros(n),
-        lg=np.zeros((dim * dim, n)), flags=np.zeros(n, dtype=np.int64),
-        cursor=np.zeros(n, dtype=np.int64),
+        # 8-bit flags and 32-bit slab and point indices: bytes per particle-step
+        lg=np.zeros((dim * dim, n)), flags=np.zeros(n, dtype=np.int8),
+        cursor=np.zeros(n, dtype=np.int32),
+        x_old=np.zeros((dim, n if cfg.grid.transfer == "flip" else 0)),
     )  # fmt: skip
     nodes = tuple(int(v) for v in prm["nodes"][0])
     from .codegen import kernels
@@ -253,7 +320,7 @@ def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
     nslabs = max(1, (nodes[1] + k.SLAB - 1) // k.SLAB)
     grid = Grid(
         nodes=np.zeros((*nodes, k.NF)), gv=np.zeros((*nodes, k.NV)),
-        slab_start=np.zeros(nslabs + 1, dtype=np.int64), order=np.zeros(n, dtype=np.int64),
+        slab_start=np.zeros(nslabs + 1, dtype=np.int64), order=np.zeros(n, dtype=np.int32),
         bounds=np.zeros(max(1, threads) + 1, dtype=np.int64),
         fw=np.zeros((k.NW, *(nodes if nonlocal_ or prm["dilatation"][0] else (1, 1, 1)))),
     )  # fmt: skip

@@ -409,6 +409,8 @@ def build_count(cfg: Config) -> int:
     if cfg.scenario.kind == "chute":
         w = g.width / 2 if g.mirror else g.width
         return int(g.length * g.depth * (w if g.dimension == 3 else s) / s**3)
+    if cfg.scenario.kind in ("box", "bar"):
+        return int(g.length * g.depth * (g.width if g.dimension == 3 else s) / s**3)
     r = g.column_width
     return int((0.785 * r * r if g.dimension == 3 else r * s) * g.column_height / s**3)
 
