@@ -5,15 +5,12 @@ a partial last block, failing points, and the output diagnostics written only wh
 
 from __future__ import annotations
 
-import platform
-import re
-
 import numba
 import numpy as np
 import pytest
 
 from segmpm.config import load_config
-from segmpm.materials import VAR_FEI_LINEAR, VAR_NGF, material_update_np, pack_material
+from segmpm.materials import material_update_np, pack_material
 from segmpm.materials.params import M_CAPR
 from segmpm.mpm import step as S
 from segmpm.mpm.params import ST_LEFT_GRID, ST_NONFINITE, ST_OK
@@ -151,35 +148,3 @@ def test_material_pass_does_not_depend_on_thread_count(rng):
     assert runs[0][0] == runs[1][0]
     for k in runs[0][1]:
         np.testing.assert_array_equal(runs[0][1][k], runs[1][1][k], err_msg=k)
-
-
-def _one_block(var):
-    """One block of the material pass, compiled fresh with the variant ``var`` a compile-time
-    constant (a closure variable), as the body of a parallel loop, the context in which
-    ``update_stress`` runs it (cached code cannot be inspected)."""
-
-    @numba.njit(error_model="numpy", parallel=True, fastmath={"contract"})
-    def one_block(v, J, eps, sig, phi, gf, diag, s_int, g_int, mp, dt, flags, lg):
-        buf = np.empty((S.B_ROWS, S.BLOCK))
-        for _ in numba.prange(1):
-            S._stress_block(var, 0, min(S.BLOCK, J.shape[0]), buf, v, J, eps, sig, phi, gf,
-                            diag, s_int, g_int, mp, dt, flags, lg)  # fmt: skip
-        return buf
-
-    return one_block
-
-
-@pytest.mark.skipif(platform.machine() not in ("x86_64", "AMD64"), reason="x86 instruction names")
-@pytest.mark.parametrize("var", [VAR_FEI_LINEAR, VAR_NGF], ids=["fei-b1", "nonlocal"])
-def test_material_loop_is_vectorised(var):
-    """The b = 1 and the nonlocal loops of the material pass compile to packed (SIMD) square
-    roots. A call or a branch that LLVM cannot turn into a select in the loop body, or a
-    memory-check threshold below the loop's needs (``segmpm._llvm_options``), would silently
-    leave it scalar and the pass twice as slow (docs/performance.md)."""
-    over = CASES["nonlocal-driverG"] if var == VAR_NGF else []
-    prm, _, _, _, a = _inputs(over, np.random.default_rng(0))
-    one_block = _one_block(var)
-    one_block(a["v"], a["J"], a["eps"], a["sig"], a["phi"], a["gf"], a["diag"], a["s_int"],
-              a["g_int"], prm, DT, a["flags"], a["lg"])  # fmt: skip
-    asm = one_block.inspect_asm(one_block.signatures[0])
-    assert re.search(r"\bv?sqrtpd\b", asm), "the material loop is not vectorised"
