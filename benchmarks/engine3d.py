@@ -28,7 +28,7 @@ import time
 import numba
 
 from segmpm.config import load_config
-from segmpm.engine.codegen import kernels
+from segmpm.engine.codegen import for_material
 from segmpm.engine.setup import build
 
 #: modelled half-widths (m) giving about 16k, 64k, 256k points at h = 0.5 mm (depth 37.3 mm:
@@ -56,7 +56,6 @@ def main() -> None:
     ap.add_argument("--peer", action="store_true", help="interleave Taichi's 3-D step at 64k")
     args = ap.parse_args()
     numba.set_num_threads(args.threads)
-    k = kernels(3)
     rows = []
     for size in args.sizes:
         half = WIDTHS[size]
@@ -69,6 +68,7 @@ def main() -> None:
                              preset="chute_seed")  # fmt: skip
         st_on = build(cfg_on, 3, threads=args.threads)
         assert st.prm["dilatation"][0] == 0 and st_on.prm["dilatation"][0] != 0
+        k = for_material(3, st.mat)  # the local law: its step file
         for s_ in (st, st_on):
             k.advance(s_.points, s_.grid, s_.prm, s_.mat, s_.clock, s_.seg, 1e9, 20)
         peer = None

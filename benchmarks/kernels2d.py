@@ -1,7 +1,7 @@
 """Where the 2-D step spends its time, on each engine: ns per particle-step of every kernel of the
 step (sort, P2G, image nodes, grid update, G2P, material law) of the production plane-strain
 engine (segmpm.mpm) and of the dimension-generic engine with D = 2 (segmpm.engine), on the seed
-chute (local model) with about 32k points, one thread, blocks of the two engines interleaved.
+chute (local model) with about 32k points (``--points``), one thread (``--threads``), blocks of the two engines interleaved.
 
     python benchmarks/kernels2d.py --out benchmarks/results/kernels2d-2026-12-03.json
 
@@ -21,7 +21,7 @@ import time
 import numba
 
 from segmpm.bench import _config_for
-from segmpm.engine.codegen import kernels
+from segmpm.engine.codegen import for_material
 from segmpm.engine.setup import build
 from segmpm.mpm import step as S
 from segmpm.mpm import transfer as T
@@ -29,9 +29,9 @@ from segmpm.mpm.params import G_GX, G_GY, S_DT
 from segmpm.simulation import Simulation, _bounds
 
 
-def production(n_points: int):
+def production(n_points: int, threads: int):
     sim = Simulation(_config_for(n_points, "local"))
-    sim.threads = 1
+    sim.threads = threads
     sim.advance(1e9, 100)
     st, w = sim.state, sim.state.work
     bounds = _bounds(w)
@@ -57,10 +57,10 @@ def production(n_points: int):
     return st.n, calls
 
 
-def generic(n_points: int):
+def generic(n_points: int, threads: int):
     cfg = _config_for(n_points, "generic-local")
-    st = build(cfg, 2, threads=1)
-    k = kernels(2)
+    st = build(cfg, 2, threads=threads)
+    k = for_material(2, st.mat)
     P, G, prm, mat, clock, seg = st.points, st.grid, st.prm, st.mat, st.clock, st.seg
     k.advance(P, G, prm, mat, clock, seg, 1e9, 100)
     nslabs = G.slab_start.shape[0] - 1
@@ -73,7 +73,7 @@ def generic(n_points: int):
         "images": lambda: (k.fold_images(G, planes, prm, 1.0), k.mirror_images(G, planes)),
         "grid_update": lambda: k.grid_update(G, prm, dt, 1.0),
         "g2p": lambda: k.g2p(P, G, prm, dt, nslabs),
-        "material": lambda: k.update_stress(P, mat, dt, False, 1),
+        "material": lambda: k.update_stress(P, mat, dt, False, nt),
         "advance": lambda: k.advance(P, G, prm, mat, clock, seg, 1e9, 1),
     }  # fmt: skip
     return st.n, calls
@@ -84,10 +84,14 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=32000)
     ap.add_argument("--steps", type=int, default=100, help="calls per kernel and block")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
-    numba.set_num_threads(1)
-    engines = {"production": production(args.points), "generic": generic(args.points)}
+    numba.set_num_threads(args.threads)
+    engines = {
+        "production": production(args.points, args.threads),
+        "generic": generic(args.points, args.threads),
+    }
     times: dict[str, dict[str, list[float]]] = {e: {} for e in engines}
     for _n, calls in engines.values():  # warm-up: compile every kernel called from Python
         for f in calls.values():
@@ -101,7 +105,7 @@ def main() -> None:
                 dt = time.perf_counter() - t0
                 times[e].setdefault(name, []).append(dt / (args.steps * n) * 1e9)
     res = {"command": " ".join(sys.argv), "machine": platform.processor() or platform.machine(),
-           "threads": 1, "numba": numba.__version__,
+           "threads": args.threads, "numba": numba.__version__,
            "points": {e: engines[e][0] for e in engines}, "ns_per_particle_step": {}}  # fmt: skip
     print(f"{'kernel':>12} {'production':>11} {'generic':>9} {'ratio':>6}   (ns per particle-step)")
     for name in engines["production"][1]:

@@ -6,13 +6,14 @@ closed form, thread independence and resume in 3-D."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from segmpm.config import ConfigError, load_config
 from segmpm.engine import codegen
-from segmpm.engine.codegen import kernels
+from segmpm.engine.codegen import for_material, kernels
 from segmpm.engine.records import PLANE_CODES
 from segmpm.engine.reference import fei_tensor_np, mat_to_sym, ngf_tensor_np, p2g_np, sym_to_mat
 from segmpm.engine.setup import build
@@ -45,6 +46,22 @@ def test_codegen_writes_one_file_per_dimension_and_keeps_it():
     assert path.stat().st_mtime_ns == stamp
     with pytest.raises(ValueError):
         codegen.render(4)
+
+
+def test_the_step_section_is_generated_once_per_law():
+    """The material pass and the time loop come in a file per law, with the law a constant,
+    and run on the shared kernels of the dimension's file; the record picks the law."""
+    head, step = codegen.render(2), codegen.render(2, 3)
+    assert "def p2g(" in head and "def advance(" not in head and "def update_stress(" not in head
+    assert "def advance(" in step and "def p2g(" not in step and "\nLAW = 3\n" in step
+    with pytest.raises(ValueError):
+        codegen.render(2, 4)
+    laws = {"local": 1, "nonlocal": 3}  # Fei et al. with b = 1; the fluidity flow rule
+    for rheology, law in laws.items():
+        mat = build(_cfg([f"material.rheology='{rheology}'"]), 3).mat
+        k = for_material(3, mat)
+        assert k.LAW == law and Path(k.__file__).name == f"kernels_d3_law{law}.py"
+        assert k.p2g is kernels(3).p2g  # the shared kernels: compiled and cached once
 
 
 def _random_state(rng, n, dim):
@@ -80,7 +97,7 @@ def _law_at(k, mat, L, e, J, phi, g, dt):
         flags=np.zeros(n, dtype=np.int8), cursor=np.zeros(n, dtype=np.int32),
         x_old=np.zeros((dim, 0)),
     )  # fmt: skip
-    status, bad, _, _ = k.update_stress(P, mat, dt, True, 1)
+    status, bad, _, _ = for_material(dim, mat).update_stress(P, mat, dt, True, 1)
     assert (status, bad) == (ST_OK, -1)
     r = np.zeros((n, 18))
     r[:, :ne] = P.eps.T
@@ -191,7 +208,7 @@ def test_p2g_matches_numpy_reference():
 def _run(st, t_end, threads=1, chunk=500):
     import numba
 
-    k = kernels(st.dim)
+    k = for_material(st.dim, st.mat)
     numba.set_num_threads(threads)
     while st.clock[0]["time"] < t_end:
         status, idx, _ = k.advance(st.points, st.grid, st.prm, st.mat, st.clock, st.seg, t_end,
@@ -351,6 +368,25 @@ def test_3d_result_does_not_depend_on_threads():
         np.testing.assert_array_equal(getattr(a.points, name), getattr(b.points, name))
 
 
+def test_thread_count_set_after_set_up_is_used_and_changes_nothing():
+    """``sim.threads`` set after set-up (the bench does it; "auto" gives one thread to a small
+    case) resizes P2G's per-thread slab runs to the new count, so that P2G runs on every
+    thread, and the result is the same bitwise."""
+    from segmpm.simulation import Simulation
+
+    cfg = ["geometry.depth=0.008", "grid.engine='generic'", "grid.threads='auto'"]
+    a, b = Simulation(_seed2d(cfg)), Simulation(_seed2d(cfg))
+    assert a.engine.grid.bounds.shape[0] == 2  # auto: a small case is serial
+    b.threads = 2
+    for s in (a, b):
+        status, _, steps = s.advance(1.0, 200)
+        assert (status, steps) == (0, 200)
+    assert b.engine.grid.bounds.shape[0] == 3
+    for name in ("x", "v", "sig", "J"):
+        np.testing.assert_array_equal(getattr(a.engine.points, name),
+                                      getattr(b.engine.points, name))  # fmt: skip
+
+
 def test_3d_run_resumes_to_the_same_result(tmp_path):
     """The default (nonlocal, grain-calibrated) model in 3-D: an interrupted run resumes to the
     same state, fluidity and fluidity clock included."""
@@ -405,8 +441,8 @@ def test_a_point_leaving_the_grid_stops_the_loop():
     P = st.points
     top = int(np.argmax(P.x[1]))
     P.v[1, top] = 50.0  # one cell per ~20 µs: out of the 1.8 mm headroom within a few steps
-    status, idx, steps = kernels(3).advance(P, st.grid, st.prm, st.mat, st.clock, st.seg, 1.0,
-                                            10_000)  # fmt: skip
+    k = for_material(3, st.mat)
+    status, idx, steps = k.advance(P, st.grid, st.prm, st.mat, st.clock, st.seg, 1.0, 10_000)
     assert (status, idx) == (ST_LEFT_GRID, top)
     assert steps < 10_000
     assert np.all(P.cursor >= 0)  # G2P wrote every point's slab
@@ -804,8 +840,8 @@ def test_material_pass_is_the_point_law_at_every_point(dim, law):
     points, the diagnostics written only when asked, and the first failing point."""
     from segmpm.mpm.params import ST_LEFT_GRID, ST_OK
 
-    k = kernels(dim)
     mat = build(LAWS[law](dim), dim).mat
+    k = for_material(dim, mat)
     rng = np.random.default_rng(11)
     n = 3 * k.BLOCK + 37
     P = _points(rng, n, dim)

@@ -1361,71 +1361,6 @@ def _stress_block(which, lo, m, buf, P, mat, dt):
         buf[B_BAD, u] = 0.0 if ok else 1.0
 
 
-@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
-def update_stress(P, mat, dt, full, threads):
-    """The material law at every point from ``P.lg`` (L of G2P), the subcycle integrals and the
-    step check. Returns (status, first failing point or −1, max c + |v|, max ν); the failing point
-    is the first in index order (a min-reduction), independent of the thread count. The output
-    diagnostics (``diag`` rows 1–5) are written when ``full`` and for a failing point.
-
-    Blocks of points in parallel; in each, the update loop with the law a constant
-    (:func:`_stress_block`, vectorised) and then a short scalar reduction
-    (``segmpm.mpm.step._reduce_block``: the largest c + |v| and ν, the first failing point, the
-    diagnostics of every point if ``full``, else of the failing ones).
-    ``threads`` only sets the block size (at least two blocks per thread); no result depends on
-    it."""
-    x = P.x
-    J = P.J
-    sig = P.sig
-    diag = P.diag
-    flags = P.flags
-    n = x.shape[1]
-    which = law_of(mat)
-    size = max(8, min(BLOCK, 8 * ((n + 16 * threads - 1) // (16 * threads))))
-    smax = 0.0
-    numax = 0.0
-    bad = n
-    for blk in prange((n + size - 1) // size):
-        lo = blk * size
-        m = min(size, n - lo)
-        buf = np.empty((B_ROWS, size))
-        if which == LAW_FEI:
-            _stress_block(LAW_FEI, lo, m, buf, P, mat, dt)
-        elif which == LAW_NGF:
-            _stress_block(LAW_NGF, lo, m, buf, P, mat, dt)
-        elif which == LAW_FEI_POWER:
-            _stress_block(LAW_FEI_POWER, lo, m, buf, P, mat, dt)
-        else:
-            _stress_block(LAW_ELASTIC, lo, m, buf, P, mat, dt)
-        bs, bn, bb = _reduce_block(lo, m, n, buf, diag, full)
-        smax = max(smax, bs)
-        numax = max(numax, bn)
-        bad = min(bad, bb)
-    if bad >= n:
-        return ST_OK, -1, smax, numax
-    ok_state = math.isfinite(diag[4, bad]) and J[bad] > 0.0
-    for a in range(D):
-        ok_state = ok_state and math.isfinite(x[a, bad])
-    for a in range(NE):
-        ok_state = ok_state and math.isfinite(sig[a, bad])
-    return (flags[bad] if ok_state else ST_NONFINITE), bad, smax, numax
-
-
-@njit(cache=True, error_model="numpy")
-def prime(P, mat):
-    """Stress, diagnostics and wave speeds of the initial state (no deformation, Δt = 0)."""
-    P.lg[:, :] = 0.0
-    P.flags[:] = ST_OK
-    s = P.s_int.copy()
-    g = P.g_int.copy()
-    # the argument types of the call in advance (bool, int64), not the literals True and 1:
-    # a literal argument would compile a second copy of the pass (docs/performance.md)
-    one = np.int64(1)
-    update_stress(P, mat, 0.0, one > 0, one)
-    P.s_int[:] = s
-    P.g_int[:] = g
-
-
 # ---------------------------------------------------------------------------------------------
 # 5b. nonlocal fluidity: diffusion on the MPM grid, local relaxation at the points
 #     (docs/model.md, "Nonlocal rheology"; the scheme, constants and boundary rules of
@@ -2036,7 +1971,74 @@ def concentration_step(P, seg, t_int):
 
 
 # ---------------------------------------------------------------------------------------------
-# the step
+# the step: the material pass and the time loop, compiled once per law
+#
+# ``codegen`` writes the section below, from the line STEP_SECTION on, into a file of its own per
+# law (``kernels_d2_law1.py`` …), run in a namespace that holds everything above, and with the
+# line ``LAW = …`` set. A run compiles only its own law: the law is a compile-time constant of
+# ``update_stress`` and ``advance``, and the kernels above are compiled and cached once whatever
+# the law (docs/architecture.md, docs/performance.md).
+
+STEP_SECTION = True
+#: the constitutive law of this copy (``LAW_*``; set by the code generator)
+LAW = LAW_FEI
+
+
+@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
+def update_stress(P, mat, dt, full, threads):
+    """The material law at every point from ``P.lg`` (L of G2P), the subcycle integrals and the
+    step check. Returns (status, first failing point or −1, max c + |v|, max ν); the failing point
+    is the first in index order (a min-reduction), independent of the thread count. The output
+    diagnostics (``diag`` rows 1–5) are written when ``full`` and for a failing point.
+
+    Blocks of points in parallel; in each, the update loop with the law of this copy (``LAW``,
+    a compile-time constant: :func:`_stress_block`, vectorised) and then a short scalar reduction
+    (``segmpm.mpm.step._reduce_block``: the largest c + |v| and ν, the first failing point, the
+    diagnostics of every point if ``full``, else of the failing ones).
+    ``threads`` only sets the block size (at least two blocks per thread); no result depends on
+    it."""
+    x = P.x
+    J = P.J
+    sig = P.sig
+    diag = P.diag
+    flags = P.flags
+    n = x.shape[1]
+    size = max(8, min(BLOCK, 8 * ((n + 16 * threads - 1) // (16 * threads))))
+    smax = 0.0
+    numax = 0.0
+    bad = n
+    for blk in prange((n + size - 1) // size):
+        lo = blk * size
+        m = min(size, n - lo)
+        buf = np.empty((B_ROWS, size))
+        _stress_block(LAW, lo, m, buf, P, mat, dt)
+        bs, bn, bb = _reduce_block(lo, m, n, buf, diag, full)
+        smax = max(smax, bs)
+        numax = max(numax, bn)
+        bad = min(bad, bb)
+    if bad >= n:
+        return ST_OK, -1, smax, numax
+    ok_state = math.isfinite(diag[4, bad]) and J[bad] > 0.0
+    for a in range(D):
+        ok_state = ok_state and math.isfinite(x[a, bad])
+    for a in range(NE):
+        ok_state = ok_state and math.isfinite(sig[a, bad])
+    return (flags[bad] if ok_state else ST_NONFINITE), bad, smax, numax
+
+
+@njit(cache=True, error_model="numpy")
+def prime(P, mat):
+    """Stress, diagnostics and wave speeds of the initial state (no deformation, Δt = 0)."""
+    P.lg[:, :] = 0.0
+    P.flags[:] = ST_OK
+    s = P.s_int.copy()
+    g = P.g_int.copy()
+    # the argument types of the call in advance (bool, int64), not the literals True and 1:
+    # a literal argument would compile a second copy of the pass (docs/performance.md)
+    one = np.int64(1)
+    update_stress(P, mat, 0.0, one > 0, one)
+    P.s_int[:] = s
+    P.g_int[:] = g
 
 
 @njit(cache=True, error_model="numpy")
@@ -2061,7 +2063,6 @@ def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
     nslabs = G.slab_start.shape[0] - 1
     threads = G.bounds.shape[0] - 1
     planes = image_planes(prm)
-    nonlocal_on = mat[0].kind == KIND_FEI2016_NGF
     musl = prm[0].transfer == TRANSFER_FLIP
     steps = 0
     while steps < max_steps and clk.time < t_stop:
@@ -2105,7 +2106,7 @@ def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
         steps += 1
         if status != ST_OK:
             return status, idx, steps
-        if nonlocal_on:  # 5b. fluidity update, every material.fluidity_dt
+        if LAW == LAW_NGF:  # 5b. fluidity update, every material.fluidity_dt (NGF only)
             clk.tflu += dt
             if clk.tflu >= mat[0].flu_dt * (1.0 - 1e-12):
                 fluidity_step(P, G, prm, mat, clk.tflu)

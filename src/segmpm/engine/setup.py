@@ -313,7 +313,7 @@ def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
         x_old=np.zeros((dim, n if cfg.grid.transfer == "flip" else 0)),
     )  # fmt: skip
     nodes = tuple(int(v) for v in prm["nodes"][0])
-    from .codegen import kernels
+    from .codegen import for_material, kernels
 
     k = kernels(dim)
     nonlocal_ = mp[M_KIND] == KIND_FEI2016_NGF
@@ -327,5 +327,5 @@ def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
     clock = np.zeros(1, dtype=CLOCK)
     seg = segregation_grid(cfg, prm, x, k.N_CWORK)
     st = EngineState(dim=dim, points=pts, grid=grid, prm=prm, mp=mp, clock=clock, seg=seg)
-    k.prime(pts, st.mat)
+    for_material(dim, st.mat).prime(pts, st.mat)
     return st
