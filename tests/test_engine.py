@@ -56,9 +56,11 @@ def test_the_step_section_is_generated_once_per_law():
     assert "def advance(" in step and "def p2g(" not in step and "\nLAW = 3\n" in step
     with pytest.raises(ValueError):
         codegen.render(2, 4)
-    laws = {"local": 1, "nonlocal": 3}  # Fei et al. with b = 1; the fluidity flow rule
-    for rheology, law in laws.items():
-        mat = build(_cfg([f"material.rheology='{rheology}'"]), 3).mat
+    laws = {"chute_seed": 1, "chute_nonlocal": 3}  # Fei et al. with b = 1; the fluidity rule
+    for preset, law in laws.items():
+        small = ["geometry.dimension=3", "grid.cell_size=0.001", "geometry.length=0.002",
+                 "geometry.depth=0.006", "geometry.width=0.004"]  # fmt: skip
+        mat = build(load_config(None, small, preset=preset), 3).mat
         k = for_material(3, mat)
         assert k.LAW == law and Path(k.__file__).name == f"kernels_d3_law{law}.py"
         assert k.p2g is kernels(3).p2g  # the shared kernels: compiled and cached once
