@@ -2,7 +2,9 @@
 
 This file is a *template*. :mod:`segmpm.engine.codegen` writes it out once per dimension with the
 line ``D = 2`` set to the dimension (files ``kernels_d2.py`` and ``kernels_d3.py`` in the keyed
-kernel cache, so that Numba's ``cache=True`` works on them), and imports the copy. ``D`` is then
+kernel cache, so that Numba's ``cache=True`` works on them), and imports the copy; the last
+section (the material pass and the time loop, from ``STEP_SECTION``) goes to a file per law
+with ``LAW`` set, so that a run compiles only its own law. ``D`` is then
 a compile-time constant: every ``if D == 3`` is pruned, the z stencil of 2-D is one node of
 weight 1, and the zero out-of-plane components of the tensors fold away. The physics is written
 once, in full 3-D tensor form; 2-D plane strain is the special case with no z velocity.
