@@ -189,12 +189,14 @@ def build_box(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray]:
     ny = _ny(g.depth * (1 + 2 * g.headroom), h)
     if dim == 2:
         x, vol = lattice((0.0, bottom), (nx * h, bottom + g.depth), s)
-        return x, vol, _params(cfg, 2, (0.0, -GHOST * h, 0.0), (nx, ny, 1), True)
+        prm = _params(cfg, 2, (0.0, -GHOST * h, 0.0), (nx, ny, 1), True)
+        prm["base_kind"] = PLANE_CODES["open"]
+        return x, vol, prm
     pad = int(math.ceil(g.headroom * g.width / h)) + GHOST
     x, vol = lattice((0.0, bottom, 0.0), (nx * h, bottom + g.depth, g.width), s)
     nz = int(math.ceil(g.width / h)) + 2 * pad + 1
     prm = _params(cfg, 3, (0.0, -GHOST * h, -pad * h), (nx, ny, nz), True)
-    prm["zlo_kind"] = prm["zhi_kind"] = PLANE_CODES["open"]
+    prm["zlo_kind"] = prm["zhi_kind"] = prm["base_kind"] = PLANE_CODES["open"]
     return x, vol, prm
 
 
