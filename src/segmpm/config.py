@@ -95,8 +95,8 @@ class GridConfig(_Section):
     volumetric_smoothing: Literal["auto", "on", "off"] = "auto"
     #: the MPM engine: "auto" (2-D: the production plane-strain engine, segmpm.mpm; 3-D: the
     #: dimension-generic engine, segmpm.engine) or "generic" (the dimension-generic engine in 2-D
-    #: too: the same kernels as 3-D with D = 2; no column solver, no test scenarios bar/box;
-    #: docs/architecture.md, "One engine: where 2-D stands").
+    #: too: the same kernels as 3-D with D = 2, the column solver included; docs/architecture.md,
+    #: "One engine: where 2-D stands").
     engine: Literal["auto", "generic"] = "auto"
     #: threads of the compiled loop: "auto" (one below 20 000 points, else the cores this process
     #: may use that no other process keeps busy; segmpm.threads) or a count (0 = numba's pool).
@@ -434,7 +434,9 @@ class Config(_Section):
         """What the dimension-generic engine supports today (docs/architecture.md)."""
         need = {
             "scenario.kind": (self.scenario.kind, ("chute", "collapse", "box", "bar")),
-            "scenario.solver": (self.scenario.solver, ("mpm",)),
+            # the column is an x-uniform 2-D layer (a 3-D one would be the same column)
+            "scenario.solver": (self.scenario.solver,
+                                ("mpm", "column") if self.geometry.dimension == 2 else ("mpm",)),
             "material.rheology": (self.material.rheology, ("local", "nonlocal")),
         }
         for key, (value, allowed) in need.items():

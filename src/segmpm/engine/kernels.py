@@ -37,7 +37,19 @@ from numba import njit, prange
 
 from segmpm import _llvm_options  # noqa: F401  (before any kernel compiles)
 from segmpm._fmath import flog, fsqrt
-from segmpm.engine.records import BC_FRICTION, BC_NOSLIP, BC_OPEN, BC_SLIP, BC_SYMMETRY
+from segmpm.engine.records import (
+    BC_FRICTION,
+    BC_NOSLIP,
+    BC_OPEN,
+    BC_SLIP,
+    BC_SYMMETRY,
+    COL_M,
+    COL_U,
+    COL_V,
+    COL_Y,
+    XY,
+    YY,
+)
 from segmpm.materials import VAR_ELASTIC, VAR_FEI_LINEAR, VAR_FEI_POWER, VAR_NGF
 from segmpm.materials.ngf import relax_logistic, return_factor
 from segmpm.materials.params import (
@@ -1582,23 +1594,71 @@ def _fluidity_nodes(fw, prm, mat):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _flux(fw, i, j, k, a, b, c, di, gi):
-    """D_f (g_n − g_i) from node (i, j, k) to its neighbour (a, b, c): the face diffusivity is
-    the mean of the two nodes' (the active node's towards a Dirichlet node); none into empty
-    nodes."""
-    kn = fw[W_KIND, a, b, c]
+def _flux(kind, diff, g, a, b, c, di, gi):
+    """D_f (g_n − g_i) from a node of diffusivity di and fluidity gi to its neighbour (a, b, c):
+    the face diffusivity is the mean of the two nodes' (the active node's towards a Dirichlet
+    node); none into empty nodes."""
+    kn = kind[a, b, c]
     if kn == K_ACTIVE:
-        return 0.5 * (di + fw[W_DIFF, a, b, c]) * (fw[W_G, a, b, c] - gi)
+        return 0.5 * (di + diff[a, b, c]) * (g[a, b, c] - gi)
     if kn == K_DIRICHLET:
         return -di * gi
     return 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _laplacian_plane(fw, i, nx, ny, nz, periodic, ih2):
+    """The flux sum Σ_faces D_f (g_j − g_i)/h² of every active node of the x-plane i (a grid
+    one node wide and periodic in x, the column's, has no x-faces but to the node itself,
+    whose flux is zero: skipped)."""
+    kind = fw[W_KIND]
+    diff = fw[W_DIFF]
+    g = fw[W_G]
+    lap = fw[W_LAP]
+    ilo = _wrap(i - 1, nx) if periodic else i - 1
+    ihi = _wrap(i + 1, nx) if periodic else i + 1
+    xfaces = not (periodic and nx == 1)
+    for j in range(ny):
+        for k in range(nz):
+            lap[i, j, k] = 0.0
+            if kind[i, j, k] != K_ACTIVE:
+                continue
+            di = diff[i, j, k]
+            gi = g[i, j, k]
+            acc = 0.0
+            if xfaces:
+                if ilo >= 0:
+                    acc += _flux(kind, diff, g, ilo, j, k, di, gi)
+                if ihi < nx:
+                    acc += _flux(kind, diff, g, ihi, j, k, di, gi)
+            if j > 0:
+                acc += _flux(kind, diff, g, i, j - 1, k, di, gi)
+            if j < ny - 1:
+                acc += _flux(kind, diff, g, i, j + 1, k, di, gi)
+            if D == 3:
+                if k > 0:
+                    acc += _flux(kind, diff, g, i, j, k - 1, di, gi)
+                if k < nz - 1:
+                    acc += _flux(kind, diff, g, i, j, k + 1, di, gi)
+            lap[i, j, k] = acc * ih2
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _advance_plane(fw, i, ny, nz, ds):
+    """g ← g + Δs (flux sum)/c on the active nodes of the x-plane i."""
+    for j in range(ny):
+        for k in range(nz):
+            if fw[W_KIND, i, j, k] == K_ACTIVE:
+                fw[W_G, i, j, k] += ds * fw[W_LAP, i, j, k] / fw[W_CAP, i, j, k]
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
 def diffuse(fw, prm, dt, dmax, planes):
     """Explicit finite-volume diffusion of the nodal g over ``dt`` in sub-steps below the
     stability limit h²/(2 D max D/c): c_i ∂g_i/∂t = Σ_faces D_f (g_j − g_i)/h² over the 2 D
-    neighbours (periodic in x if the grid is). Returns the number of sub-steps."""
+    neighbours (periodic in x if the grid is). Returns the number of sub-steps. The x-planes
+    in parallel; a grid one node wide (the column model) serially, without the cost of two
+    parallel regions per sub-step (4× the production column's fluidity step with them)."""
     if not (dmax > 0.0) or not (dt > 0.0):
         return 0
     pr = prm[0]
@@ -1608,36 +1668,14 @@ def diffuse(fw, prm, dt, dmax, planes):
     nsub = max(1, int(math.ceil(dt * 2.0 * D * dmax * ih2 / SAFETY)))
     ds = dt / nsub
     for _ in range(nsub):
-        for i in prange(nx):
-            ilo = _wrap(i - 1, nx) if periodic else i - 1
-            ihi = _wrap(i + 1, nx) if periodic else i + 1
-            for j in range(ny):
-                for k in range(nz):
-                    fw[W_LAP, i, j, k] = 0.0
-                    if fw[W_KIND, i, j, k] != K_ACTIVE:
-                        continue
-                    di = fw[W_DIFF, i, j, k]
-                    gi = fw[W_G, i, j, k]
-                    acc = 0.0
-                    if ilo >= 0:
-                        acc += _flux(fw, i, j, k, ilo, j, k, di, gi)
-                    if ihi < nx:
-                        acc += _flux(fw, i, j, k, ihi, j, k, di, gi)
-                    if j > 0:
-                        acc += _flux(fw, i, j, k, i, j - 1, k, di, gi)
-                    if j < ny - 1:
-                        acc += _flux(fw, i, j, k, i, j + 1, k, di, gi)
-                    if D == 3:
-                        if k > 0:
-                            acc += _flux(fw, i, j, k, i, j, k - 1, di, gi)
-                        if k < nz - 1:
-                            acc += _flux(fw, i, j, k, i, j, k + 1, di, gi)
-                    fw[W_LAP, i, j, k] = acc * ih2
-        for i in prange(nx):
-            for j in range(ny):
-                for k in range(nz):
-                    if fw[W_KIND, i, j, k] == K_ACTIVE:
-                        fw[W_G, i, j, k] += ds * fw[W_LAP, i, j, k] / fw[W_CAP, i, j, k]
+        if nx == 1:
+            _laplacian_plane(fw, 0, nx, ny, nz, periodic, ih2)
+            _advance_plane(fw, 0, ny, nz, ds)
+        else:
+            for i in prange(nx):
+                _laplacian_plane(fw, i, nx, ny, nz, periodic, ih2)
+            for i in prange(nx):
+                _advance_plane(fw, i, ny, nz, ds)
         mirror_fluidity(fw, planes)
     return nsub
 
@@ -1973,6 +2011,110 @@ def concentration_step(P, seg, t_int):
 
 
 # ---------------------------------------------------------------------------------------------
+# 7. the column model (``scenario.solver = "column"``, 2-D only; docs/column.md): an x-uniform
+#    layer as N two-node linear elements in depth, the elements the Points (their law, fluidity
+#    and concentration steps the MPM's), the nodes a (COL_ROWS, N + 1) array of rows COL_*
+
+
+@njit(cache=True, error_model="numpy")
+def column_time_step(prm, clk, nodes):
+    """Δt = min(C Δy/(max(c + |v|) + 2 ν_max/Δy), C_ν Δy²/(2 ν_max), Δt_max) on the shortest
+    element Δy: the combined wave and diffusion bound of the explicit 1-D scheme (C =
+    ``time.column_courant`` in ``prm.cfl``; each limit alone was unstable, docs/column.md)."""
+    pr = prm[0]
+    dymin = math.inf
+    for e in range(nodes.shape[1] - 1):
+        dymin = min(dymin, nodes[COL_Y, e + 1] - nodes[COL_Y, e])
+    dt = pr.dt_max
+    smax = max(clk.smax, pr.c_floor)
+    rate = smax + 2.0 * clk.numax / dymin
+    if rate > 0.0:
+        dt = min(dt, pr.cfl * dymin / rate)
+    if clk.numax > 0.0:
+        dt = min(dt, pr.visc * dymin * dymin / (2.0 * clk.numax))
+    return dt
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _column_node(j, fx, fy, vp, nodes, dt, gx, gy, sw, sw0, uw, lx):
+    """Node j's new velocity from its net internal force per unit width (fx, fy), gravity and
+    the sidewall body force on vp = Σ V p of its half elements."""
+    im = 1.0 / nodes[COL_M, j]
+    u = nodes[COL_U, j] + dt * (lx * fx * im + gx)
+    w = nodes[COL_V, j] + dt * (lx * fy * im + gy)
+    if (sw > 0.0 or sw0 > 0.0) and vp > 0.0:
+        u, w = sidewall_drag(u, w, sw, sw0, uw, dt, vp, im)
+    nodes[COL_U, j] = u
+    nodes[COL_V, j] = w
+
+
+@njit(cache=True, error_model="numpy")
+def column_nodes(nodes, P, prm, dt, ramp):
+    """The nodal velocities over one step: the internal force l_x (σ_above − σ_below) (zero
+    traction above the top node; l_x the column's width in x), gravity, the 2-D sidewall force
+    on Σ V p of the node's half elements, then the boundary planes (the base) on node 0."""
+    pr = prm[0]
+    lx = pr.length_x
+    gx = pr.gravity[0] * ramp
+    gy = pr.gravity[1]
+    sw = pr.sidewall * ramp
+    uw = pr.sidewall_speed
+    sw0 = pr.sidewall_slow * ramp if uw > 0.0 else sw
+    sig = P.sig
+    vol0 = P.vol0
+    J = P.J
+    pres = P.diag[0]
+    ne = nodes.shape[1] - 1
+    for j in range(1, ne):
+        b = j - 1
+        vp = 0.5 * vol0[j] * J[j] * pres[j] + 0.5 * vol0[b] * J[b] * pres[b]
+        _column_node(j, sig[XY, j] - sig[XY, b], sig[YY, j] - sig[YY, b], vp, nodes, dt, gx, gy,
+                     sw, sw0, uw, lx)  # fmt: skip
+    b = ne - 1
+    _column_node(ne, -sig[XY, b], -sig[YY, b], 0.5 * vol0[b] * J[b] * pres[b], nodes, dt, gx, gy,
+                 sw, sw0, uw, lx)  # fmt: skip
+    _column_node(0, sig[XY, 0], sig[YY, 0], 0.5 * vol0[0] * J[0] * pres[0], nodes, dt, gx, gy,
+                 sw, sw0, uw, lx)  # fmt: skip
+    vx, vy, _ = apply_planes(prm, 0.5 * lx, nodes[COL_Y, 0], 0.0, nodes[COL_U, 0],
+                             nodes[COL_V, 0], 0.0)  # fmt: skip
+    nodes[COL_U, 0] = vx
+    nodes[COL_V, 0] = vy
+
+
+@njit(cache=True, error_model="numpy")
+def column_kinematics(nodes, P, dt):
+    """Each element's velocity gradient L = [[0, ∂u/∂y], [0, ∂v/∂y]] (``P.lg``), its
+    J ← J (1 + Δt ∂v/∂y) and its velocity, the mean of its nodes'."""
+    lg = P.lg
+    J = P.J
+    v = P.v
+    for e in range(J.shape[0]):
+        dy = nodes[COL_Y, e + 1] - nodes[COL_Y, e]
+        u0 = nodes[COL_U, e]
+        u1 = nodes[COL_U, e + 1]
+        w0 = nodes[COL_V, e]
+        w1 = nodes[COL_V, e + 1]
+        l11 = (w1 - w0) / dy
+        lg[0, e] = 0.0
+        lg[1, e] = (u1 - u0) / dy
+        lg[D, e] = 0.0
+        lg[D + 1, e] = l11
+        J[e] = J[e] * (1.0 + dt * l11)
+        v[0, e] = 0.5 * (u0 + u1)
+        v[1, e] = 0.5 * (w0 + w1)
+
+
+@njit(cache=True, error_model="numpy")
+def column_positions(nodes, P, dt):
+    """Node positions y ← y + Δt v, then the elements' centres."""
+    for j in range(nodes.shape[1]):
+        nodes[COL_Y, j] += dt * nodes[COL_V, j]
+    x = P.x
+    for e in range(x.shape[1]):
+        x[1, e] = 0.5 * (nodes[COL_Y, e] + nodes[COL_Y, e + 1])
+
+
+# ---------------------------------------------------------------------------------------------
 # the step: the material pass and the time loop, compiled once per law
 #
 # ``codegen`` writes the section below, from the line STEP_SECTION on, into a file of its own per
@@ -2121,5 +2263,61 @@ def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
     return ST_OK, -1, steps
 
 
-__all__ = ["D", "NE", "NF", "NV", "NW", "SLAB", "advance", "apply_planes", "fei_tensor",
+@njit(cache=True, error_model="numpy")
+def advance_column(P, Pc, nodes, G, prm, mat, clock, seg, t_stop, max_steps):
+    """The column model's time loop (``scenario.solver = "column"``, 2-D; docs/column.md), with
+    the contract of :func:`advance`. ``P``: the elements; ``Pc``: the same arrays with ``vol0``
+    the elements' volumes on the concentration grid's one-cell width; ``G.fw``: the
+    one-node-wide periodic fluidity grid. The order of the MPM's update-stress-last step:"""
+    clk = clock[0]
+    n = P.J.shape[0]
+    pr = prm[0]
+    y_max = pr.origin[1] + (pr.nodes[1] - 1.5) * pr.h
+    threads = G.bounds.shape[0] - 1  # the block size of the material pass only
+    steps = 0
+    while steps < max_steps and clk.time < t_stop:
+        t = clk.time
+        dt = column_time_step(prm, clk, nodes)
+        if not (dt >= pr.dt_min):
+            return ST_DT_COLLAPSE, -1, steps
+        last = steps + 1 >= max_steps
+        if t + dt * 1.000001 >= t_stop:
+            dt = t_stop - t
+            last = True
+        ramp = min(1.0, (t + dt) / pr.ramp) if pr.ramp > 0.0 else 1.0
+
+        column_nodes(nodes, P, prm, dt, ramp)  # 1. nodal forces, velocities, the base
+        column_kinematics(nodes, P, dt)  # 2. element L, J and velocity
+        status, idx, smax, numax = update_stress(P, mat, dt, last, threads)  # 3. material law
+        column_positions(nodes, P, dt)  # 4. node positions
+
+        clk.time = t + dt
+        clk.step += 1
+        clk.dt = dt
+        clk.tseg += dt
+        clk.smax = smax
+        clk.numax = numax
+        steps += 1
+        if status != ST_OK:
+            return status, idx, steps
+        if not (nodes[COL_Y, n] < y_max):
+            return (ST_LEFT_GRID if math.isfinite(nodes[COL_Y, n]) else ST_NONFINITE), n - 1, steps
+        if LAW == LAW_NGF:  # 5. fluidity update on the one-node-wide grid
+            clk.tflu += dt
+            if clk.tflu >= mat[0].flu_dt * (1.0 - 1e-12):
+                fluidity_step(P, G, prm, mat, clk.tflu)
+                clk.nflu += 1
+                clk.tflu = 0.0
+        if clk.tseg >= seg.prm[P_DT_TARGET] * (1.0 - 1e-12):  # 6. segregation subcycle
+            if seg.prm[P_MODEL] != 0.0:
+                concentration_step(Pc, seg, clk.tseg)
+                clk.nseg += 1
+            else:
+                P.s_int[:] = 0.0
+                P.g_int[:] = 0.0
+            clk.tseg = 0.0
+    return ST_OK, -1, steps
+
+
+__all__ = ["D", "NE", "NF", "NV", "NW", "SLAB", "advance", "advance_column", "apply_planes", "fei_tensor",
            "fluidity_step", "g2p", "grid_update", "ngf_tensor", "p2g", "prime", "update_stress"]  # fmt: skip

@@ -49,6 +49,10 @@ from ..materials import params as _mparams
 #: symmetric-tensor components in the engine's storage order
 XX, YY, ZZ, XY, XZ, YZ = range(6)
 
+#: rows of the column model's node array (COL_ROWS, N + 1) (``scenario.solver = "column"``):
+#: position y (m), velocity u (downslope) and v (normal), lumped mass per metre of z (kg/m)
+COL_Y, COL_U, COL_V, COL_M, COL_ROWS = range(5)
+
 #: boundary-plane kinds (``PARAMS`` ``*_kind``): the 2-D engine's codes plus a symmetry plane
 #: (mirror: no normal velocity, free tangential, never separates)
 from ..mpm.params import BC_CODES, BC_FRICTION, BC_NOSLIP, BC_OPEN, BC_SLIP  # noqa: E402
@@ -219,7 +223,8 @@ class Grid(NamedTuple):
 
 
 __all__ = [
-    "BC_FRICTION", "BC_NOSLIP", "BC_OPEN", "BC_SLIP", "BC_SYMMETRY", "CLOCK", "Grid", "MATERIAL",
+    "BC_FRICTION", "BC_NOSLIP", "BC_OPEN", "BC_SLIP", "BC_SYMMETRY", "CLOCK", "COL_M",
+    "COL_ROWS", "COL_U", "COL_V", "COL_Y", "Grid", "MATERIAL",
     "PARAMS", "PLANE_CODES", "POINT_STATE", "Points", "XX", "XY", "XZ", "YY", "YZ", "ZZ",
     "material_record",
 ]  # fmt: skip

@@ -28,7 +28,19 @@ from ..materials import pack_material
 from ..materials.params import KIND_FEI2016_NGF, M_KIND
 from ..mpm.params import TRANSFER_AFLIP, TRANSFER_APIC, TRANSFER_FLIP
 from ..scenarios.builders import GHOST, _initial_strain, gravity_vector, wave_speed_floor
-from .records import CLOCK, CONC, PARAMS, PLANE_CODES, Grid, Points, Segregation, material_record
+from .records import (
+    CLOCK,
+    COL_M,
+    COL_ROWS,
+    COL_Y,
+    CONC,
+    PARAMS,
+    PLANE_CODES,
+    Grid,
+    Points,
+    Segregation,
+    material_record,
+)
 
 
 @dataclass
@@ -42,6 +54,10 @@ class EngineState:
     mp: np.ndarray  # the packed material (``mat`` is its named view)
     clock: np.ndarray  # CLOCK, one element
     seg: Segregation  # the concentration grid, closure parameters and scratch
+    #: the column model (``scenario.solver = "column"``): its nodes (COL_ROWS, N + 1), and the
+    #: elements as the concentration step's points (``vol0`` on the concentration cell's width)
+    nodes: np.ndarray | None = None
+    seg_points: Points | None = None
 
     @property
     def mat(self) -> np.ndarray:
@@ -281,8 +297,105 @@ def segregation_grid(cfg: Config, prm: np.ndarray, x: np.ndarray, nwork: int) ->
                        corner_weights=np.zeros(8))  # fmt: skip
 
 
+def _points(x: np.ndarray, v: np.ndarray, mass: np.ndarray, vol0: np.ndarray, J: np.ndarray,
+            eps: np.ndarray, phi0: float, transfer: str) -> Points:
+    dim, n = x.shape
+    ne = eps.shape[0]
+    return Points(
+        x=np.ascontiguousarray(x), v=v, C=np.zeros((dim * dim, n)), mass=mass, vol0=vol0,
+        J=np.ascontiguousarray(J, dtype=np.float64), eps=eps, sig=np.zeros((ne, n)),
+        phi=np.full(n, phi0), gf=np.zeros(n), diag=np.zeros((6, n)), s_int=np.zeros(n),
+        g_int=np.zeros(n),
+        # 8-bit flags and 32-bit slab and point indices: bytes per particle-step
+        lg=np.zeros((dim * dim, n)), flags=np.zeros(n, dtype=np.int8),
+        cursor=np.zeros(n, dtype=np.int32), x_old=np.zeros((dim, n if transfer == "flip" else 0)),
+    )  # fmt: skip
+
+
+def _engine_strain(cfg: Config, mp: np.ndarray, p_yy: np.ndarray, dim: int):
+    """The geostatic elastic strain of the 2-D builders, in the engine's order, and J."""
+    eps4, J = _initial_strain(cfg, mp, p_yy)  # (xx, yy, xy, zz) of the 2-D builders
+    n = p_yy.shape[0]
+    eps = np.zeros((4 if dim == 2 else 6, n))
+    eps[0], eps[1], eps[2], eps[3] = eps4[0], eps4[1], eps4[3], eps4[2]
+    if dim == 3 and mp[M_KIND] != 0 and cfg.material.initial_state == "isotropic":
+        eps[2] = eps4[3]
+    return eps, J
+
+
+def build_column(cfg: Config, threads: int = 1) -> EngineState:
+    """The column model of a chute configuration (``scenario.solver = "column"``, 2-D;
+    docs/column.md): N = round(H n_ppc/h) two-node elements of the MPM's point spacing over the
+    depth H, node 0 on the base y = 0 and the top node the free surface; the geostatic state of
+    the MPM builder; the grid one node wide and periodic in x (the fluidity's), of the column's
+    width l_x = h; the concentration grid one cell of h_c wide. ``prm.cfl`` holds the column's
+    Courant number (``time.column_courant``), the material record the bulk-viscosity floor
+    ``COLUMN_BULK_VISCOSITY``."""
+    from ..column import COLUMN_BULK_VISCOSITY
+    from ..materials.params import M_ZETA
+    from ..segregation import conc_cell_size, make_conc_grid, pack_params
+    from .codegen import for_material, kernels
+
+    g = cfg.geometry
+    h = cfg.grid.cell_size
+    ne = max(2, round(g.depth / (h / cfg.grid.particles_per_cell)))
+    dy = g.depth / ne
+    y_nodes = np.arange(ne + 1) * dy
+    yc = 0.5 * (y_nodes[:-1] + y_nodes[1:])
+    ny = _ny(g.depth * (1 + g.headroom), h)
+    prm = _params(cfg, 2, (0.0, -GHOST * h, 0.0), (1, ny, 1), True)
+    _sidewall_force(cfg, prm)
+    lx = float(prm["length_x"][0])  # = h: the column's width in x, the grid's one periodic cell
+    mp = pack_material(cfg)
+    mp[M_ZETA] = max(mp[M_ZETA], COLUMN_BULK_VISCOSITY)
+    rho = cfg.material.solid_fraction * cfg.material.grain_density
+    p_yy = rho * (-prm["gravity"][0, 1]) * (g.depth - yc)
+    eps, J = _engine_strain(cfg, mp, p_yy, 2)
+    vol0 = np.full(ne, dy * lx) / J
+    mass = rho * vol0
+    hc = conc_cell_size(cfg)
+    x = np.stack([np.full(ne, 0.5 * hc), yc])
+    pts = _points(x, np.zeros((2, ne)), mass, vol0, J, eps, cfg.mixture.phi_small_initial, "apic")
+    nodes = np.zeros((COL_ROWS, ne + 1))
+    nodes[COL_Y] = y_nodes
+    nodes[COL_M, :-1] += 0.5 * mass
+    nodes[COL_M, 1:] += 0.5 * mass
+    prm["c_floor"] = wave_speed_floor(cfg, mp, float(np.max(p_yy)))
+    prm["cfl"] = cfg.time.column_courant
+    k = kernels(2)
+    nonlocal_ = mp[M_KIND] == KIND_FEI2016_NGF
+    grid = Grid(
+        nodes=np.zeros((1, 1, 1, k.NF)), gv=np.zeros((1, 1, 1, k.NV)),
+        slab_start=np.zeros(2, dtype=np.int64), order=np.zeros(ne, dtype=np.int32),
+        bounds=np.zeros(max(1, threads) + 1, dtype=np.int64),
+        fw=np.zeros((k.NW, *((1, ny, 1) if nonlocal_ else (1, 1, 1)))),
+    )  # fmt: skip
+    # the concentration grid: one periodic cell of h_c in x (the elements its points)
+    g2 = make_conc_grid(0.0, hc, 0.0, float(prm["origin"][0, 1] + (ny - 1) * h), hc, True)
+    cg = np.zeros(1, dtype=CONC)
+    cg["hc"] = g2.hc
+    cg["origin"][0] = (g2.x0, g2.y0, 0.0)
+    cg["cells"][0] = (g2.ncx, g2.ncy, 1)
+    cg["periodic_x"] = g2.periodic_x
+    seg = Segregation(grid=cg, prm=pack_params(cfg, (prm["gravity"][0, 0], prm["gravity"][0, 1])),
+                      prm_z=pack_params(cfg, (0.0, 0.0)), work=np.zeros((k.N_CWORK, g2.ncx, g2.ncy, 1)),
+                      corner_cells=np.zeros((8, 3), dtype=np.int64), corner_weights=np.zeros(8))  # fmt: skip
+    clock = np.zeros(1, dtype=CLOCK)
+    st = EngineState(dim=2, points=pts, grid=grid, prm=prm, mp=mp, clock=clock, seg=seg,
+                     nodes=nodes, seg_points=pts._replace(vol0=vol0 * (hc / lx)))  # fmt: skip
+    for_material(2, st.mat).prime(pts, st.mat)
+    # the first step's bound from the primed state (c + |v| and ν of every element)
+    clock["smax"] = float(np.max(pts.diag[4]))
+    clock["numax"] = float(np.max(pts.diag[5]))
+    return st
+
+
 def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
     """The initial state of ``cfg`` in ``dim`` dimensions (geostatic, at rest)."""
+    if cfg.scenario.solver == "column":
+        if dim != 2:
+            raise ValueError("scenario.solver = 'column' is a 2-D model (geometry.dimension = 2)")
+        return build_column(cfg, threads)
     kind = cfg.scenario.kind
     if kind not in BUILDERS:
         raise ValueError(f"scenario.kind = {kind!r} is not available in the generic engine")
@@ -295,25 +408,12 @@ def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
         p_yy = rho * (-prm["gravity"][0, 1]) * (top - x[1])
     else:  # the test bodies start stress-free
         p_yy = np.zeros(n)
-    eps4, J = _initial_strain(cfg, mp, p_yy)  # (xx, yy, xy, zz) of the 2-D builders
-    ne = 4 if dim == 2 else 6
-    eps = np.zeros((ne, n))
-    eps[0], eps[1], eps[2], eps[3] = eps4[0], eps4[1], eps4[3], eps4[2]
-    if dim == 3 and mp[M_KIND] != 0 and cfg.material.initial_state == "isotropic":
-        eps[2] = eps4[3]
+    eps, J = _engine_strain(cfg, mp, p_yy, dim)
     vol0 = np.full(n, vol) / J
     mass = rho * vol0
     prm["c_floor"] = wave_speed_floor(cfg, mp, float(np.max(p_yy)) if n else 0.0)
-    pts = Points(
-        x=np.ascontiguousarray(x), v=initial_velocity(cfg, x), C=np.zeros((dim * dim, n)),
-        mass=mass, vol0=vol0, J=np.ascontiguousarray(J, dtype=np.float64), eps=eps,
-        sig=np.zeros((ne, n)), phi=np.full(n, cfg.mixture.phi_small_initial), gf=np.zeros(n),
-        diag=np.zeros((6, n)), s_int=np.zeros(n), g_int=np.zeros(n),
-        # 8-bit flags and 32-bit slab and point indices: bytes per particle-step
-        lg=np.zeros((dim * dim, n)), flags=np.zeros(n, dtype=np.int8),
-        cursor=np.zeros(n, dtype=np.int32),
-        x_old=np.zeros((dim, n if cfg.grid.transfer == "flip" else 0)),
-    )  # fmt: skip
+    pts = _points(x, initial_velocity(cfg, x), mass, vol0, J, eps, cfg.mixture.phi_small_initial,
+                  cfg.grid.transfer)  # fmt: skip
     nodes = tuple(int(v) for v in prm["nodes"][0])
     from .codegen import for_material, kernels
 

@@ -1,4 +1,5 @@
-"""A run on the dimension-generic engine (``geometry.dimension = 3``).
+"""A run on the dimension-generic engine (``geometry.dimension = 3``, or ``grid.engine =
+"generic"`` in 2-D, the column model included).
 
 :class:`EngineSimulation` is a :class:`segmpm.simulation.Simulation`: the same controller (chunked
 calls of the compiled loop, outputs at the profile times, atomic checkpoints at k·Δt, resume,
@@ -106,8 +107,13 @@ class EngineSimulation(Simulation):
             # been changed since set-up, as the bench does): results do not depend on it
             e.grid = e.grid._replace(bounds=np.zeros(self.threads + 1, dtype=np.int64))
         t0 = _time.perf_counter()
-        status, idx, n = self.kernels.advance(e.points, e.grid, e.prm, e.mat, e.clock, e.seg,
-                                              float(t_stop), int(max_steps))  # fmt: skip
+        if e.nodes is not None:  # the column model
+            status, idx, n = self.kernels.advance_column(
+                e.points, e.seg_points, e.nodes, e.grid, e.prm, e.mat, e.clock, e.seg,
+                float(t_stop), int(max_steps))  # fmt: skip
+        else:
+            status, idx, n = self.kernels.advance(e.points, e.grid, e.prm, e.mat, e.clock, e.seg,
+                                                  float(t_stop), int(max_steps))  # fmt: skip
         self.wall_time += _time.perf_counter() - t0
         if status != ST_OK:
             self._failed = (int(status), int(idx))
@@ -118,8 +124,9 @@ class EngineSimulation(Simulation):
         from .._cache import KERNEL_CACHE
 
         stem = Path(self.kernels.__file__).stem  # the step file of the run's law
-        cold = not self.kernels.advance.signatures and not any(
-            KERNEL_CACHE.rglob(f"{stem}.advance-*.nbi"))  # fmt: skip
+        loop = "advance_column" if self.engine.nodes is not None else "advance"
+        cold = not getattr(self.kernels, loop).signatures and not any(
+            KERNEL_CACHE.rglob(f"{stem}.{loop}-*.nbi"))  # fmt: skip
         if cold:
             import sys
 
@@ -332,7 +339,7 @@ class EngineSimulation(Simulation):
             self._cross = [(tt, f) for tt, f in self._cross if tt < t - 1e-12]
             self._cross.append((t, self.cross_section()[2]))
             write_netcdf(self.out_dir / "cross_section.nc", self._cross_dataset())
-        if self.config.output.fields:
+        if self.config.output.fields and self.engine.nodes is None:  # the column: profiles only
             mu, g = self._fluidity()
             data = {"velocity_x": P.v[0], "velocity_y": P.v[1],
                     "velocity_z": P.v[2] if self.dim == 3 else np.zeros(self.engine.n),
@@ -373,7 +380,7 @@ class EngineSimulation(Simulation):
             "threads_policy": self.threads_reason, "threading_layer": threading_layer(),
             "concentration_steps": int(self.clock["nseg"]),
             "fluidity_updates": int(self.clock["nflu"]),
-            "rheology": self.config.material.rheology,
+            "rheology": self.config.material.rheology, "solver": self.config.scenario.solver,
         }  # fmt: skip
         if failure is not None:
             info["failure"] = failure
@@ -384,6 +391,8 @@ class EngineSimulation(Simulation):
         P = self.engine.points
         arrays = {k: getattr(P, k) for k in POINT_STATE}
         arrays["clock"] = self.engine.clock.view(np.uint8)
+        if self.engine.nodes is not None:
+            arrays["nodes"] = self.engine.nodes
         meta = {"time": self.time, "steps": self.steps, "wall_time": self.wall_time,
                 "initial": self._initial, "configuration": self.config.to_dict(),
                 "segmpm_version": __version__, "dimension": self.dim}  # fmt: skip
@@ -393,8 +402,10 @@ class EngineSimulation(Simulation):
     def load_checkpoint(self, path: str | Path) -> None:
         arrays, meta = load_checkpoint(path)
         P = self.engine.points
-        for k in (*POINT_STATE, "clock"):
-            target = self.engine.clock.view(np.uint8) if k == "clock" else getattr(P, k)
+        column = ("nodes",) if self.engine.nodes is not None else ()
+        for k in (*POINT_STATE, "clock", *column):
+            target = (self.engine.clock.view(np.uint8) if k == "clock" else
+                      self.engine.nodes if k == "nodes" else getattr(P, k))  # fmt: skip
             if k not in arrays or arrays[k].shape != target.shape:
                 raise ValueError(f"checkpoint {path}: array {k} missing or of another shape "
                                  "(a checkpoint of another configuration or dimension?)")  # fmt: skip
@@ -411,6 +422,8 @@ def build_count(cfg: Config) -> int:
     """An estimate of the number of points (for the thread policy, before building)."""
     g = cfg.geometry
     s = cfg.grid.cell_size / cfg.grid.particles_per_cell
+    if cfg.scenario.solver == "column":
+        return max(2, round(g.depth / s))
     if cfg.scenario.kind == "chute":
         w = g.width / 2 if g.mirror else g.width
         return int(g.length * g.depth * (w if g.dimension == 3 else s) / s**3)
