@@ -1201,8 +1201,9 @@ def fei_tensor(mat, L, e, J, phi, dt, linear):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def elastic_tensor(mat, L, e, J, phi, dt):
-    """Linear (Hooke) elasticity with the Jaumann predictor: σ = λ tr ε 1 + 2 μ ε (tests)."""
-    _, _, _, _, _, _, _, _, exx, eyy, ezz, exy, exz, eyz = _kinematics(L, e, dt)
+    """Linear (Hooke) elasticity with the Jaumann predictor: σ = λ tr ε 1 + 2 μ ε (tests); the
+    shear-rate diagnostic γ̇ as the other laws report it."""
+    _, _, _, _, _, _, _, gdot, exx, eyy, ezz, exy, exz, eyz = _kinematics(L, e, dt)
     lam = mat.lame_lambda
     mu = mat.mu
     tr = exx + eyy + ezz
@@ -1211,7 +1212,7 @@ def elastic_tensor(mat, L, e, J, phi, dt):
     return (exx, eyy, ezz, exy, exz, eyz, lam * tr + 2.0 * mu * exx, lam * tr + 2.0 * mu * eyy,
             lam * tr + 2.0 * mu * ezz, 2.0 * mu * exy, 2.0 * mu * exz if D == 3 else 0.0,
             2.0 * mu * eyz if D == 3 else 0.0,
-            -tr * (lam + 2.0 * mu / 3.0), 0.0, 0.0, 0.0, c, 0.0)  # fmt: skip
+            -tr * (lam + 2.0 * mu / 3.0), gdot, 0.0, 0.0, c, 0.0)  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy", inline="always")
