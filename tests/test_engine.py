@@ -798,7 +798,9 @@ def test_generic_engine_in_2d_reproduces_the_production_engine(transfer):
 
 
 def test_generic_engine_in_2d_names_what_it_lacks():
-    assert _seed2d(["grid.engine='generic'", "scenario.solver='column'"]).scenario.solver == "column"
+    assert (
+        _seed2d(["grid.engine='generic'", "scenario.solver='column'"]).scenario.solver == "column"
+    )
     with pytest.raises(ConfigError, match="scenario.solver"):  # the column is a 2-D layer
         _seed2d(["grid.engine='generic'", "scenario.solver='column'", "geometry.dimension=3",
                  "geometry.width=0.004", "geometry.mirror=true"])  # fmt: skip

@@ -435,8 +435,10 @@ class Config(_Section):
         need = {
             "scenario.kind": (self.scenario.kind, ("chute", "collapse", "box", "bar")),
             # the column is an x-uniform 2-D layer (a 3-D one would be the same column)
-            "scenario.solver": (self.scenario.solver,
-                                ("mpm", "column") if self.geometry.dimension == 2 else ("mpm",)),
+            "scenario.solver": (
+                self.scenario.solver,
+                ("mpm", "column") if self.geometry.dimension == 2 else ("mpm",),
+            ),
             "material.rheology": (self.material.rheology, ("local", "nonlocal")),
         }
         for key, (value, allowed) in need.items():

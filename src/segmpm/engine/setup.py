@@ -297,8 +297,16 @@ def segregation_grid(cfg: Config, prm: np.ndarray, x: np.ndarray, nwork: int) ->
                        corner_weights=np.zeros(8))  # fmt: skip
 
 
-def _points(x: np.ndarray, v: np.ndarray, mass: np.ndarray, vol0: np.ndarray, J: np.ndarray,
-            eps: np.ndarray, phi0: float, transfer: str) -> Points:
+def _points(
+    x: np.ndarray,
+    v: np.ndarray,
+    mass: np.ndarray,
+    vol0: np.ndarray,
+    J: np.ndarray,
+    eps: np.ndarray,
+    phi0: float,
+    transfer: str,
+) -> Points:
     dim, n = x.shape
     ne = eps.shape[0]
     return Points(
