@@ -2142,12 +2142,8 @@ def update_stress(P, mat, dt, full, threads):
     diagnostics of every point if ``full``, else of the failing ones).
     ``threads`` only sets the block size (at least two blocks per thread); no result depends on
     it."""
-    x = P.x
-    J = P.J
-    sig = P.sig
     diag = P.diag
-    flags = P.flags
-    n = x.shape[1]
+    n = P.x.shape[1]
     size = max(8, min(BLOCK, 8 * ((n + 16 * threads - 1) // (16 * threads))))
     smax = 0.0
     numax = 0.0
@@ -2161,14 +2157,35 @@ def update_stress(P, mat, dt, full, threads):
         smax = max(smax, bs)
         numax = max(numax, bn)
         bad = min(bad, bb)
+    return _pass_status(P, bad, smax, numax)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _pass_status(P, bad, smax, numax):
+    """The result of a material pass: (status, first failing point or −1, max c + |v|, max ν);
+    a failing point whose state is not finite reports ST_NONFINITE."""
+    n = P.J.shape[0]
     if bad >= n:
         return ST_OK, -1, smax, numax
-    ok_state = math.isfinite(diag[4, bad]) and J[bad] > 0.0
+    ok_state = math.isfinite(P.diag[4, bad]) and P.J[bad] > 0.0
     for a in range(D):
-        ok_state = ok_state and math.isfinite(x[a, bad])
+        ok_state = ok_state and math.isfinite(P.x[a, bad])
     for a in range(NE):
-        ok_state = ok_state and math.isfinite(sig[a, bad])
-    return (flags[bad] if ok_state else ST_NONFINITE), bad, smax, numax
+        ok_state = ok_state and math.isfinite(P.sig[a, bad])
+    return (P.flags[bad] if ok_state else ST_NONFINITE), bad, smax, numax
+
+
+@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
+def column_stress(P, mat, dt, full, buf):
+    """The material pass of the column: :func:`update_stress` as one block (``buf``: B_ROWS × N,
+    allocated once per call of the loop) in a one-block parallel region, the reduction after
+    it. The same results; for the column's ~150 elements the blocked pass's per-call cost (its
+    buffers and parallel reductions: ``benchmarks/column_pass.py``) was twice the work."""
+    n = P.J.shape[0]
+    for _ in prange(1):  # the region lets LLVM vectorise the block (docs/column.md)
+        _stress_block(LAW, 0, n, buf, P, mat, dt)
+    smax, numax, bad = _reduce_block(0, n, n, buf, P.diag, full)
+    return _pass_status(P, bad, smax, numax)
 
 
 @njit(cache=True, error_model="numpy")
@@ -2274,7 +2291,7 @@ def advance_column(P, Pc, nodes, G, prm, mat, clock, seg, t_stop, max_steps):
     n = P.J.shape[0]
     pr = prm[0]
     y_max = pr.origin[1] + (pr.nodes[1] - 1.5) * pr.h
-    threads = G.bounds.shape[0] - 1  # the block size of the material pass only
+    buf = np.empty((B_ROWS, n))  # the material pass's block buffer
     steps = 0
     while steps < max_steps and clk.time < t_stop:
         t = clk.time
@@ -2289,7 +2306,7 @@ def advance_column(P, Pc, nodes, G, prm, mat, clock, seg, t_stop, max_steps):
 
         column_nodes(nodes, P, prm, dt, ramp)  # 1. nodal forces, velocities, the base
         column_kinematics(nodes, P, dt)  # 2. element L, J and velocity
-        status, idx, smax, numax = update_stress(P, mat, dt, last, threads)  # 3. material law
+        status, idx, smax, numax = column_stress(P, mat, dt, last, buf)  # 3. material law
         column_positions(nodes, P, dt)  # 4. node positions
 
         clk.time = t + dt
@@ -2320,5 +2337,5 @@ def advance_column(P, Pc, nodes, G, prm, mat, clock, seg, t_stop, max_steps):
     return ST_OK, -1, steps
 
 
-__all__ = ["D", "NE", "NF", "NV", "NW", "SLAB", "advance", "advance_column", "apply_planes", "fei_tensor",
+__all__ = ["D", "NE", "NF", "NV", "NW", "SLAB", "advance", "advance_column", "apply_planes", "column_stress", "fei_tensor",
            "fluidity_step", "g2p", "grid_update", "ngf_tensor", "p2g", "prime", "update_stress"]  # fmt: skip
