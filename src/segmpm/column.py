@@ -45,6 +45,7 @@ from numba import njit, prange
 
 from . import _llvm_options  # noqa: F401  (before any kernel of the loop compiles)
 from .config import Config
+from .engine.records import COL_M, COL_ROWS, COL_U, COL_V, COL_Y
 from .materials import (
     VAR_ELASTIC,
     VAR_FEI_LINEAR,
@@ -96,9 +97,8 @@ from .state import State
 #: into the gas state (docs/column.md); 0.05 ρ c h, i.e. 0.1 ρ c Δy, damps them
 COLUMN_BULK_VISCOSITY = 0.05
 
-#: rows of the node record ``State.nodes`` (4, N + 1): position y (m), velocity u (downslope)
-#: and v (normal), lumped mass per metre of z (kg/m)
-COL_Y, COL_U, COL_V, COL_M, COL_ROWS = range(5)
+#: rows of the node record ``State.nodes`` (COL_ROWS, N + 1): ``engine.records.COL_*``, shared
+#: with the generic engine's column (position y, velocities u and v, lumped mass per metre of z)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -162,7 +162,7 @@ def _check(J, sig, diag):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _node(j, fx, fy, vp, nodes, dt, gx, gy, sw, sw0, uw, lx):
+def node_velocity(j, fx, fy, vp, nodes, dt, gx, gy, sw, sw0, uw, lx):
     """The new velocity of node j from its net internal force per unit width (fx, fy), gravity
     and the sidewall force on vp = Σ V p of its half elements."""
     im = 1.0 / nodes[COL_M, j]
@@ -192,12 +192,12 @@ def _nodes(nodes, sig, vol0, J, pres, gp, dt, ramp, lx):
         fx = sig[2, j] - sig[2, b]
         fy = sig[1, j] - sig[1, b]
         vp = 0.5 * vol0[j] * J[j] * pres[j] + 0.5 * vol0[b] * J[b] * pres[b]
-        _node(j, fx, fy, vp, nodes, dt, gx, gy, sw, sw0, uw, lx)
+        node_velocity(j, fx, fy, vp, nodes, dt, gx, gy, sw, sw0, uw, lx)
     # the top node (the free surface: only the element below) and the base node
     b = ne - 1
-    _node(ne, -sig[2, b], -sig[1, b], 0.5 * vol0[b] * J[b] * pres[b], nodes, dt, gx, gy, sw, sw0,
+    node_velocity(ne, -sig[2, b], -sig[1, b], 0.5 * vol0[b] * J[b] * pres[b], nodes, dt, gx, gy, sw, sw0,
           uw, lx)  # fmt: skip
-    _node(0, sig[2, 0], sig[1, 0], 0.5 * vol0[0] * J[0] * pres[0], nodes, dt, gx, gy, sw, sw0,
+    node_velocity(0, sig[2, 0], sig[1, 0], 0.5 * vol0[0] * J[0] * pres[0], nodes, dt, gx, gy, sw, sw0,
           uw, lx)  # fmt: skip
     nodes[COL_U, 0], nodes[COL_V, 0] = apply_bc(gp, 0.5 * lx, nodes[COL_Y, 0], nodes[COL_U, 0],
                                                 nodes[COL_V, 0])  # fmt: skip
@@ -294,6 +294,15 @@ def advance_column(x, v, mass, vol0, J, eps, sig, phi, gf, diag, s_int, g_int, n
 # set-up
 
 
+def column_elements(cfg: Config) -> tuple[np.ndarray, np.ndarray]:
+    """The column's node heights (N + 1, from the base) and element centres (N): N =
+    depth / (h / n_ppc) elements of equal height, at least two."""
+    g = cfg.geometry
+    ne = max(2, round(g.depth / (cfg.grid.cell_size / cfg.grid.particles_per_cell)))
+    y_nodes = np.arange(ne + 1) * (g.depth / ne)
+    return y_nodes, 0.5 * (y_nodes[:-1] + y_nodes[1:])
+
+
 def build_column(cfg: Config) -> State:
     """The column of a chute configuration: elements of the MPM's point spacing h/n_ppc over the
     depth H (round(H n_ppc/h) of them), nodes from the base (y = 0) to the free surface, the geostatic
@@ -306,10 +315,9 @@ def build_column(cfg: Config) -> State:
 
     g = cfg.geometry
     h = cfg.grid.cell_size
-    ne = max(2, round(g.depth / (h / cfg.grid.particles_per_cell)))
+    y_nodes, yc = column_elements(cfg)
+    ne = yc.size
     dy = g.depth / ne
-    y_nodes = np.arange(ne + 1) * dy
-    yc = 0.5 * (y_nodes[:-1] + y_nodes[1:])
     gp = grid_record(cfg, x0=0.0, nx=1, y0=-GHOST * h, ny=_ny(g.depth * (1 + g.headroom), h),
                      periodic=True, base=cfg.boundary.base)  # fmt: skip
     lx = h  # the column's width in x: the fluidity grid's one periodic cell

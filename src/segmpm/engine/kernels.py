@@ -37,13 +37,13 @@ from numba import njit, prange
 
 from segmpm import _llvm_options  # noqa: F401  (before any kernel compiles)
 from segmpm._fmath import flog, fsqrt
+from segmpm.column import node_velocity  # the column's node update (one source)
 from segmpm.engine.records import (
     BC_FRICTION,
     BC_NOSLIP,
     BC_OPEN,
     BC_SLIP,
     BC_SYMMETRY,
-    COL_M,
     COL_U,
     COL_V,
     COL_Y,
@@ -2036,19 +2036,6 @@ def column_time_step(prm, clk, nodes):
     return dt
 
 
-@njit(cache=True, error_model="numpy", inline="always")
-def _column_node(j, fx, fy, vp, nodes, dt, gx, gy, sw, sw0, uw, lx):
-    """Node j's new velocity from its net internal force per unit width (fx, fy), gravity and
-    the sidewall body force on vp = Σ V p of its half elements."""
-    im = 1.0 / nodes[COL_M, j]
-    u = nodes[COL_U, j] + dt * (lx * fx * im + gx)
-    w = nodes[COL_V, j] + dt * (lx * fy * im + gy)
-    if (sw > 0.0 or sw0 > 0.0) and vp > 0.0:
-        u, w = sidewall_drag(u, w, sw, sw0, uw, dt, vp, im)
-    nodes[COL_U, j] = u
-    nodes[COL_V, j] = w
-
-
 @njit(cache=True, error_model="numpy")
 def column_nodes(nodes, P, prm, dt, ramp):
     """The nodal velocities over one step: the internal force l_x (σ_above − σ_below) (zero
@@ -2069,12 +2056,12 @@ def column_nodes(nodes, P, prm, dt, ramp):
     for j in range(1, ne):
         b = j - 1
         vp = 0.5 * vol0[j] * J[j] * pres[j] + 0.5 * vol0[b] * J[b] * pres[b]
-        _column_node(j, sig[XY, j] - sig[XY, b], sig[YY, j] - sig[YY, b], vp, nodes, dt, gx, gy,
+        node_velocity(j, sig[XY, j] - sig[XY, b], sig[YY, j] - sig[YY, b], vp, nodes, dt, gx, gy,
                      sw, sw0, uw, lx)  # fmt: skip
     b = ne - 1
-    _column_node(ne, -sig[XY, b], -sig[YY, b], 0.5 * vol0[b] * J[b] * pres[b], nodes, dt, gx, gy,
+    node_velocity(ne, -sig[XY, b], -sig[YY, b], 0.5 * vol0[b] * J[b] * pres[b], nodes, dt, gx, gy,
                  sw, sw0, uw, lx)  # fmt: skip
-    _column_node(0, sig[XY, 0], sig[YY, 0], 0.5 * vol0[0] * J[0] * pres[0], nodes, dt, gx, gy,
+    node_velocity(0, sig[XY, 0], sig[YY, 0], 0.5 * vol0[0] * J[0] * pres[0], nodes, dt, gx, gy,
                  sw, sw0, uw, lx)  # fmt: skip
     vx, vy, _ = apply_planes(prm, 0.5 * lx, nodes[COL_Y, 0], 0.0, nodes[COL_U, 0],
                              nodes[COL_V, 0], 0.0)  # fmt: skip
@@ -2127,6 +2114,18 @@ def column_positions(nodes, P, dt):
 STEP_SECTION = True
 #: the constitutive law of this copy (``LAW_*``; set by the code generator)
 LAW = LAW_FEI
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _tick(clk, t, dt, smax, numax):
+    """The clock after a step Δt from t: time, step count, Δt, the segregation subcycle's
+    elapsed time, and the wave speed and viscosity the next step's Δt is taken from."""
+    clk.time = t + dt
+    clk.step += 1
+    clk.dt = dt
+    clk.tseg += dt
+    clk.smax = smax
+    clk.numax = numax
 
 
 @njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
@@ -2259,12 +2258,7 @@ def advance(P, G, prm, mat, clock, seg, t_stop, max_steps):
             smooth_dilatation(P, G, prm, dt)  #    volumetric smoothing of L, then J
         status, idx, smax, numax = update_stress(P, mat, dt, last, threads)  # 5. material law
 
-        clk.time = t + dt
-        clk.step += 1
-        clk.dt = dt
-        clk.tseg += dt
-        clk.smax = smax
-        clk.numax = numax
+        _tick(clk, t, dt, smax, numax)
         steps += 1
         if status != ST_OK:
             return status, idx, steps
@@ -2309,12 +2303,7 @@ def advance_column(P, Pc, nodes, G, prm, mat, clock, seg, t_stop, max_steps):
         status, idx, smax, numax = column_stress(P, mat, dt, last, buf)  # 3. material law
         column_positions(nodes, P, dt)  # 4. node positions
 
-        clk.time = t + dt
-        clk.step += 1
-        clk.dt = dt
-        clk.tseg += dt
-        clk.smax = smax
-        clk.numax = numax
+        _tick(clk, t, dt, smax, numax)
         steps += 1
         if status != ST_OK:
             return status, idx, steps

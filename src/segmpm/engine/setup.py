@@ -339,17 +339,16 @@ def build_column(cfg: Config, threads: int = 1) -> EngineState:
     width l_x = h; the concentration grid one cell of h_c wide. ``prm.cfl`` holds the column's
     Courant number (``time.column_courant``), the material record the bulk-viscosity floor
     ``COLUMN_BULK_VISCOSITY``."""
-    from ..column import COLUMN_BULK_VISCOSITY
+    from ..column import COLUMN_BULK_VISCOSITY, column_elements
     from ..materials.params import M_ZETA
     from ..segregation import conc_cell_size, make_conc_grid, pack_params
     from .codegen import for_material, kernels
 
     g = cfg.geometry
     h = cfg.grid.cell_size
-    ne = max(2, round(g.depth / (h / cfg.grid.particles_per_cell)))
+    y_nodes, yc = column_elements(cfg)
+    ne = yc.size
     dy = g.depth / ne
-    y_nodes = np.arange(ne + 1) * dy
-    yc = 0.5 * (y_nodes[:-1] + y_nodes[1:])
     ny = _ny(g.depth * (1 + g.headroom), h)
     prm = _params(cfg, 2, (0.0, -GHOST * h, 0.0), (1, ny, 1), True)
     _sidewall_force(cfg, prm)
