@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 PRESETS = ("chute_seed", "chute_nonlocal")
-ENGINES = ("auto", "generic")  # in 2-D "auto" is the production engine
+ENGINES = ("production", "generic")
 COLD = """
 import json, sys, time
 t0 = time.perf_counter()
@@ -87,7 +87,7 @@ def main() -> None:
                 d = res["warm"].setdefault(f"{p}/{e}", {"wall_per_sim_s": [], "steps": []})
                 d["wall_per_sim_s"].append(round(wall / a.t, 4))
                 d["steps"].append(s.steps - n0)
-            g, q = res["warm"][f"{p}/generic"], res["warm"][f"{p}/auto"]
+            g, q = res["warm"][f"{p}/generic"], res["warm"][f"{p}/production"]
             ratios = [x / y for x, y in zip(g["wall_per_sim_s"], q["wall_per_sim_s"], strict=True)]
             res.setdefault("ratio_generic_over_production", {})[p] = {
                 "per_round": [round(x, 3) for x in ratios],
@@ -97,11 +97,11 @@ def main() -> None:
     import numpy as np
 
     for p in PRESETS:  # the same physics: both engines at the same time, after every round
-        pa, pg = sims[(p, "auto")].profiles(), sims[(p, "generic")].profiles()
+        pa, pg = sims[(p, "production")].profiles(), sims[(p, "generic")].profiles()
         us = float(np.nanmax(np.abs(pa["velocity_x"])))
         res.setdefault("identity", {})[p] = {
-            "time": sims[(p, "auto")].time, "u_s": us,
-            "steps_equal": sims[(p, "auto")].steps == sims[(p, "generic")].steps,
+            "time": sims[(p, "production")].time, "u_s": us,
+            "steps_equal": sims[(p, "production")].steps == sims[(p, "generic")].steps,
             "max_du_over_us": float(np.nanmax(np.abs(pg["velocity_x"] - pa["velocity_x"]))) / us,
             "max_dphi": float(np.nanmax(np.abs(pg["phi_small"] - pa["phi_small"]))),
             "max_dfluidity_rel": float(np.nanmax(np.abs(pg["fluidity"] - pa["fluidity"]))

@@ -139,7 +139,7 @@ def test_bench_generic_variant_runs_the_same_case_on_the_generic_engine(tmp_path
 
     assert BENCH_VARIANTS == list(VARIANTS)
     assert _config_for(600, "generic-local").grid.engine == "generic"
-    assert _config_for(600, "local").grid.engine == "auto"
+    assert _config_for(600, "local").grid.engine == "production"
     out = tmp_path / "bench.json"
     assert main(["bench", "--sizes", "600", "--threads", "1", "--steps", "20", "--repeats", "2",
                  "--no-peer", "--variants", "local", "generic-local", "--json", str(out)]) == 0  # fmt: skip

@@ -11,7 +11,19 @@ from conftest import make_sim
 from segmpm.analysis.closed_form import bagnold_velocity, sidewall_velocity
 from segmpm.column import COL_U, COL_Y, column_step_np
 from segmpm.config import ConfigError, load_config
-from segmpm.mpm.params import G_CFLOOR
+from segmpm.engine.records import XX, XY, YY, ZZ
+from segmpm.mpm.params import (
+    S_DT,
+    S_NFLU,
+    S_NSEG,
+    S_NSLOTS,
+    S_NUMAX,
+    S_SMAX,
+    S_STEP,
+    S_TFLU,
+    S_TIME,
+    S_TSEG,
+)
 
 COLUMN = ["scenario.solver='column'"]
 #: a thin layer of the seed preset (8 mm, the 2 mm / 3 mm mixture), quick for both solvers
@@ -38,30 +50,62 @@ CASES = {
 }
 
 
+#: the production layout's tensor rows (xx, yy, xy, zz) in the generic engine's (xx, yy, zz, xy)
+TO_PRODUCTION = [XX, YY, XY, ZZ]
+#: the production scalar slots S_* of the generic clock's fields
+SLOTS = {S_TIME: "time", S_STEP: "step", S_TSEG: "tseg", S_SMAX: "smax", S_NUMAX: "numax",
+         S_DT: "dt", S_NSEG: "nseg", S_TFLU: "tflu", S_NFLU: "nflu"}  # fmt: skip
+
+
+def _production_layout(sim) -> dict[str, np.ndarray]:
+    """The state of a column run in the production layout that ``column_step_np`` reads."""
+    if type(sim).__name__ == "Simulation":
+        return {k: v.copy() for k, v in sim.state.arrays().items()}
+    P = sim.engine.points
+    out = {k: getattr(P, k).copy() for k in ("x", "v", "mass", "vol0", "J", "phi", "gf", "diag",
+                                            "s_int", "g_int")}  # fmt: skip
+    out["eps"], out["sig"] = P.eps[TO_PRODUCTION].copy(), P.sig[TO_PRODUCTION].copy()
+    out["nodes"] = sim.engine.nodes.copy()
+    out["sc"] = np.zeros(S_NSLOTS)
+    for slot, name in SLOTS.items():
+        out["sc"][slot] = sim.clock[name]
+    return out
+
+
+@pytest.mark.parametrize("engine", ["generic", "production"])
 @pytest.mark.parametrize("case", sorted(CASES))
-def test_one_column_step_matches_numpy_reference(case, rng):
-    sim = make_sim([*COLUMN, *CASES[case], "boundary.ramp_time=0.1"])
-    sim._prime()
+def test_one_column_step_matches_numpy_reference(case, engine, rng):
+    """One step of either engine's compiled column (a sheared, slightly compressed column with
+    random fluidity and φ_s) is the NumPy twin's to round-off. The twin reads the production
+    layout and grid record; the generic state is translated into it."""
+    over = [*COLUMN, *CASES[case], "boundary.ramp_time=0.1"]
+    sim = make_sim([*over, f"grid.engine='{engine}'"])
+    twin = make_sim([*over, "grid.engine='production'"]).state  # the twin's grid and material
     st = sim.state
-    # a non-trivial state: a sheared, slightly compressed column with random fluidity and φ
+    P = st if engine == "production" else st.points
+    eps_xy = 2 if engine == "production" else XY
     st.nodes[COL_U, 1:] = rng.uniform(0.0, 0.1, st.n)
     st.nodes[COL_U + 1, 1:] = rng.normal(scale=1e-3, size=st.n)
-    st.eps[2] += rng.normal(scale=1e-6, size=st.n)
-    st.phi[:] = rng.uniform(0, 1, st.n)
-    st.gf[:] = rng.uniform(0, 50, st.n)
-    st.sc[1] = 0
-    sim._primed = False
-    sim._prime()
-    before = {k: v.copy() for k, v in st.arrays().items()}
-    ref = column_step_np(before, st.gp, st.mp)
+    P.eps[eps_xy] += rng.normal(scale=1e-6, size=st.n)
+    P.phi[:] = rng.uniform(0, 1, st.n)
+    P.gf[:] = rng.uniform(0, 50, st.n)
+    if engine == "production":
+        sim._prime()
+        st.sc[1] = 0
+        sim._primed = False
+        sim._prime()
+    else:
+        sim.prime()
+    before = _production_layout(sim)
+    ref = column_step_np(before, twin.gp, twin.mp)
     status, _, n = sim.advance(1.0, 1)
     assert status == 0 and n == 1
+    after = _production_layout(sim)
     for k, b in ref.items():
-        a = st.arrays()[k]
         scale = max(np.max(np.abs(b)), 1e-300)
-        np.testing.assert_allclose(a, b, rtol=0, atol=1e-11 * scale, err_msg=k)
-    assert np.max(np.abs(st.nodes[COL_U] - before["nodes"][COL_U])) > 0
-    assert np.max(np.abs(st.sig - before["sig"])) > 0
+        np.testing.assert_allclose(after[k], b, rtol=0, atol=1e-11 * scale, err_msg=k)
+    assert np.max(np.abs(after["nodes"][COL_U] - before["nodes"][COL_U])) > 0
+    assert np.max(np.abs(after["sig"] - before["sig"])) > 0
 
 
 def _steady(over: list[str], t_end: float):
@@ -119,38 +163,23 @@ def test_column_conserves_mass_and_small_grains_and_keeps_bounds():
     c = sim.conservation()
     assert c["mass_drift"] == 0.0
     assert abs(c["small_volume_drift"]) < 1e-12
-    assert np.all((sim.state.phi >= 0.0) & (sim.state.phi <= 1.0))
-    assert np.all(np.isfinite(sim.state.gf)) and np.max(sim.state.gf) > 0.0
+    P = sim.engine.points
+    assert np.all((P.phi >= 0.0) & (P.phi <= 1.0))
+    assert np.all(np.isfinite(P.gf)) and np.max(P.gf) > 0.0
     assert sim.state.nodes[COL_U, 0] == 0.0  # the no-slip base
-
-
-def test_column_resume_is_bit_identical(tmp_path):
-    over = [*COLUMN, *THIN, *NONLOCAL, "time.end=0.3", "output.checkpoint_interval=0.1",
-            "output.profile_times=[0.0, 0.1, 0.3]"]  # fmt: skip
-    a = make_sim(over, out_dir=tmp_path / "a")
-    assert a.run().exit_code == 0
-    b = make_sim([*over, "time.end=0.1"], out_dir=tmp_path / "b")
-    assert b.run().exit_code == 0
-    c = make_sim(over, out_dir=tmp_path / "b")
-    assert c.run(resume=True).exit_code == 0
-    for k, arr in a.state.arrays().items():
-        np.testing.assert_array_equal(arr, c.state.arrays()[k], err_msg=k)
-    assert not (tmp_path / "a" / "fields").exists() or not any(
-        (tmp_path / "a" / "fields").iterdir()
-    )
 
 
 @pytest.mark.parametrize("case", list(CASES))
 def test_generic_engine_column_is_the_production_column(case):
-    """``grid.engine = 'generic'`` runs the column on the dimension-generic kernels (D = 2 with
+    """The default engine runs the column on the dimension-generic kernels (D = 2 with
     the column's ∂/∂y-only kinematics, its base and sidewall from the engine's plane and drag
     closures, the same law, fluidity and concentration steps as the 2-D MPM). The two
     evaluate the same formulas in another order, so with the same step count they must agree
     to round-off: within 1e-9 of u_s, of φ_s and of the peak pressure and fluidity after
     0.05 s, far below a modelling difference (a changed constant shows at 1e-3)."""
     over = [*COLUMN, *CASES[case]]
-    a = make_sim(over)
-    b = make_sim([*over, "grid.engine='generic'"])
+    a = make_sim([*over, "grid.engine='production'"])
+    b = make_sim(over)
     assert type(a).__name__ == "Simulation" and type(b).__name__ == "EngineSimulation"
     for s in (a, b):
         s.advance_to(0.05)
@@ -164,9 +193,12 @@ def test_generic_engine_column_is_the_production_column(case):
         np.testing.assert_allclose(pb[key], pa[key], rtol=0, atol=1e-9 * scale, err_msg=key)
 
 
-def test_generic_engine_column_resume_is_bit_identical(tmp_path):
-    over = [*COLUMN, *THIN, *NONLOCAL, "grid.engine='generic'", "time.end=0.1",
-            "output.checkpoint_interval=0.05", "output.profile_times=[0.0, 0.05, 0.1]"]  # fmt: skip
+def test_column_resume_is_bit_identical(tmp_path):
+    """A column run stopped at a checkpoint and resumed ends in the state of one uninterrupted
+    run, bit for bit (every checkpointed array, the clock's step count included), with the
+    same profile times and profiles, and writes no particle snapshots."""
+    over = [*COLUMN, *THIN, *NONLOCAL, "time.end=0.1", "output.checkpoint_interval=0.05",
+            "output.profile_times=[0.0, 0.05, 0.1]"]  # fmt: skip
     a = make_sim(over, out_dir=tmp_path / "a")
     assert a.run().exit_code == 0
     b = make_sim([*over, "time.end=0.05"], out_dir=tmp_path / "b")
@@ -174,10 +206,9 @@ def test_generic_engine_column_resume_is_bit_identical(tmp_path):
     c = make_sim(over, out_dir=tmp_path / "b")
     assert c.run(resume=True).exit_code == 0
     assert a.steps == c.steps
-    np.testing.assert_array_equal(a.state.nodes, c.state.nodes)
-    for k in ("x", "v", "phi", "gf", "J"):
-        np.testing.assert_array_equal(getattr(a.state.points, k), getattr(c.state.points, k), k)
-    assert np.max(a.state.points.gf) > 0.0
+    for k, arr in a.state.arrays().items():
+        np.testing.assert_array_equal(arr, c.state.arrays()[k], err_msg=k)
+    assert np.max(a.engine.points.gf) > 0.0
     import xarray as xr
 
     with (
@@ -186,6 +217,9 @@ def test_generic_engine_column_resume_is_bit_identical(tmp_path):
     ):
         assert pa["time"].values.tolist() == pb["time"].values.tolist() == [0.0, 0.05, 0.1]
         np.testing.assert_array_equal(pa["velocity_x"].values, pb["velocity_x"].values)
+    assert not (tmp_path / "a" / "fields").exists() or not any(
+        (tmp_path / "a" / "fields").iterdir()
+    )
 
 
 def test_column_needs_a_chute():
@@ -202,14 +236,13 @@ def test_column_time_step_is_its_combined_courant_step_on_its_element():
     the wave speed never below the loaded material's floor)."""
     sim = make_sim([*COLUMN, *THIN, "time.end=0.01", "time.column_courant=0.6"])
     sim.advance_to(0.001)
-    st = sim.state
-    dy = float(np.min(np.diff(st.nodes[COL_Y])))
-    smax = max(float(st.sc[3]), float(st.gp[G_CFLOOR]))
-    nu = float(st.sc[4])
+    dy = float(np.min(np.diff(sim.engine.nodes[COL_Y])))
+    smax = max(float(sim.clock["smax"]), float(sim.engine.prm[0]["c_floor"]))
+    nu = float(sim.clock["numax"])
     assert nu > 0.0  # the local law's σ^d and the column's bulk viscosity
     want = min(0.6 * dy / (smax + 2.0 * nu / dy), sim.config.time.viscous_number * dy**2 / (2 * nu))
     sim.advance(1.0, 1)
-    assert st.sc[5] == pytest.approx(want, rel=1e-12)
+    assert sim.clock["dt"] == pytest.approx(want, rel=1e-12)
     assert dy == pytest.approx(sim.config.grid.cell_size / 2, rel=0.02)  # n_ppc = 2
 
 

@@ -691,8 +691,8 @@ def test_fluidity_step_2d_is_the_production_step():
     from segmpm.mpm.params import G_H, G_NX, G_NY, G_X0, G_Y0
     from segmpm.simulation import Simulation
 
-    cfg = _nl_cfg(["geometry.depth=0.008", "segregation.model='none'"], dim=2)
-    st = build(cfg, 2)
+    over = ["geometry.depth=0.008", "segregation.model='none'"]
+    st = build(_nl_cfg(over, dim=2), 2)
     P = st.points
     rng = np.random.default_rng(23)
     n = st.n
@@ -700,7 +700,7 @@ def test_fluidity_step_2d_is_the_production_step():
     P.gf[:] = np.where(rng.random(n) < 0.2, 0.0, 10.0 ** rng.uniform(-1, 2, n))
     tau = rng.uniform(0.2, 0.6, n) * P.diag[0]  # a shear stress: μ around μ_s
     P.sig[3] = tau
-    gp = Simulation(cfg).state.gp
+    gp = Simulation(_nl_cfg([*over, "grid.engine='production'"], dim=2)).state.gp
     pr = st.prm[0]
     assert (gp[G_X0], gp[G_Y0], gp[G_H]) == (pr["origin"][0], pr["origin"][1], pr["h"])
     assert (int(gp[G_NX]), int(gp[G_NY])) == tuple(pr["nodes"][:2])
@@ -771,7 +771,7 @@ def _seed2d(extra=()):
 
 @pytest.mark.parametrize("transfer", ["aflip", "flip"])
 def test_generic_engine_in_2d_reproduces_the_production_engine(transfer):
-    """``grid.engine = 'generic'`` runs a 2-D case on the dimension-generic kernels (D = 2). The
+    """The default engine runs a 2-D case on the dimension-generic kernels (D = 2). The
     two engines evaluate the same formulas in another order, so the seed chute (Fei law with
     the sidewall body force, the segregation subcycle every 1 ms) must agree to round-off: over
     0.05 s (3500 steps, 50 concentration steps) within 1e-9 of u_s and of φ_s, far below any
@@ -782,8 +782,8 @@ def test_generic_engine_in_2d_reproduces_the_production_engine(transfer):
     from segmpm.simulation import Simulation
 
     t = f"grid.transfer='{transfer}'"
-    a = Simulation(_seed2d([t]))
-    b = Simulation(_seed2d([t, "grid.engine='generic'"]))
+    a = Simulation(_seed2d([t, "grid.engine='production'"]))
+    b = Simulation(_seed2d([t]))
     assert type(a) is Simulation and isinstance(b, EngineSimulation) and b.dim == 2
     for s in (a, b):
         s.advance_to(0.05)
@@ -940,8 +940,8 @@ def test_generic_bar_in_2d_is_the_production_bar():
     generic 2-D kernels is the production engine's, to round-off, over a quarter period."""
     from segmpm.simulation import Simulation
 
-    a = Simulation(_bar(16))
-    b = Simulation(_bar(16, ["grid.engine='generic'"]))
+    a = Simulation(_bar(16, ["grid.engine='production'"]))
+    b = Simulation(_bar(16))
     for s in (a, b):
         s.advance_to(BAR_PERIOD / 4)
     assert a.steps == b.steps > 50

@@ -166,7 +166,7 @@ def _chute(h, depth, mu_w, t_end, extra=()):
     sim = make_sim([*NGF, f"geometry.length={2 * h}", f"grid.cell_size={h}",
                     f"geometry.depth={depth}", f"boundary.sidewall_friction={mu_w}", *extra])  # fmt: skip
     sim.advance_to(t_end)
-    st = sim.state
+    st = sim.engine.points
     rows = np.unique(np.round(st.x[1], 9))
     u = np.array([st.v[0][np.abs(st.x[1] - r) < 1e-9].mean() for r in rows])
     g = np.array([st.gf[np.abs(st.x[1] - r) < 1e-9].mean() for r in rows])
@@ -276,7 +276,7 @@ def test_nonlocal_checkpoint_resume_is_bit_identical(tmp_path):
     c.advance_to(0.06)
     for k, v in a.state.arrays().items():
         np.testing.assert_array_equal(v, c.state.arrays()[k], err_msg=k)
-    assert a.state.gf.max() > 0
+    assert a.engine.points.gf.max() > 0
 
 
 def test_calibrated_example_matches_the_calibration():

@@ -8,10 +8,12 @@ and in a flowing granular layer a difference can grow. The question is how far t
 engine's profiles are from the production ones over the whole 20 s, next to their distance from
 the DEM. Reads the runs written by
 
-    segmpm run chute_seed --out validation/results/engine2d/local_production <COMMON>
+    segmpm run chute_seed --out validation/results/engine2d/local_production <COMMON> \
+        --set grid.engine='"production"'
     segmpm run chute_seed --out validation/results/engine2d/local_generic <COMMON> \
         --set grid.engine='"generic"'
-    segmpm run --out validation/results/engine2d/nonlocal_production <COMMON>
+    segmpm run --out validation/results/engine2d/nonlocal_production <COMMON> \
+        --set grid.engine='"production"'
     segmpm run --out validation/results/engine2d/nonlocal_generic <COMMON> \
         --set grid.engine='"generic"'
 

@@ -93,11 +93,11 @@ class GridConfig(_Section):
     #: "Volumetric smoothing"). "auto": on for the nonlocal rheology in 3-D, where it was shown
     #: to help, else off; "on" needs geometry.dimension = 3.
     volumetric_smoothing: Literal["auto", "on", "off"] = "auto"
-    #: the MPM engine: "auto" (2-D: the production plane-strain engine, segmpm.mpm; 3-D: the
-    #: dimension-generic engine, segmpm.engine) or "generic" (the dimension-generic engine in 2-D
-    #: too: the same kernels as 3-D with D = 2, the column solver included; docs/architecture.md,
-    #: "One engine: where 2-D stands").
-    engine: Literal["auto", "generic"] = "auto"
+    #: the MPM engine: "auto" and "generic" (the default): the dimension-generic engine,
+    #: segmpm.engine, in 2-D and 3-D (the column solver included); "production": the former
+    #: 2-D plane-strain engine, segmpm.mpm, kept for the A/B against the generic one until it is
+    #: removed (2-D only; docs/architecture.md, "One engine: where 2-D stands").
+    engine: Literal["auto", "generic", "production"] = "auto"
     #: threads of the compiled loop: "auto" (one below 20 000 points, else the cores this process
     #: may use that no other process keeps busy; segmpm.threads) or a count (0 = numba's pool).
     #: Results do not depend on it.
@@ -417,8 +417,9 @@ class Config(_Section):
         if g.dimension == 3:
             self._check_3d()
         else:
-            if self.grid.engine == "generic":
-                self._check_generic("grid.engine = 'generic' in 2-D")
+            if self.grid.engine != "production":
+                self._check_generic("the dimension-generic engine (grid.engine = "
+                                    f"{self.grid.engine!r}) in 2-D")  # fmt: skip
             if self.grid.volumetric_smoothing == "on":
                 raise ValueError(
                     "grid.volumetric_smoothing = 'on' needs geometry.dimension = 3 (it is "
@@ -452,6 +453,11 @@ class Config(_Section):
         """What the 3-D engine supports today (docs/architecture.md, "Status")."""
         g = self.geometry
         h = self.grid.cell_size
+        if self.grid.engine == "production":
+            raise ValueError(
+                "grid.engine = 'production' (the former plane-strain engine) needs "
+                "geometry.dimension = 2; allowed in 3-D: 'auto', 'generic'"
+            )
         self._check_generic("geometry.dimension = 3")
         if self.scenario.kind == "chute":
             wm = g.width / 2 if g.mirror else g.width

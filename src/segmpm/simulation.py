@@ -125,10 +125,9 @@ class Simulation:
     """
 
     def __new__(cls, config: Config | None = None, out_dir: str | Path | None = None):
-        """``geometry.dimension = 3`` and ``grid.engine = "generic"`` run on the dimension-generic
+        """Every run but ``grid.engine = "production"`` (2-D only) is on the dimension-generic
         engine (:class:`segmpm.engine.simulation.EngineSimulation`, the same controller)."""
-        generic = config is not None and (
-            config.geometry.dimension == 3 or config.grid.engine == "generic")  # fmt: skip
+        generic = config is None or config.grid.engine != "production"
         if cls is Simulation and generic:
             from .engine.simulation import EngineSimulation
 

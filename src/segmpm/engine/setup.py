@@ -36,6 +36,7 @@ from .records import (
     CONC,
     PARAMS,
     PLANE_CODES,
+    POINT_STATE,
     Grid,
     Points,
     Segregation,
@@ -67,6 +68,15 @@ class EngineState:
     @property
     def n(self) -> int:
         return int(self.points.mass.shape[0])
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The physical state by name, as a checkpoint holds it (views, not copies): the point
+        arrays of POINT_STATE, ``clock`` (the CLOCK record's bytes) and the column's ``nodes``."""
+        out = {k: getattr(self.points, k) for k in POINT_STATE}
+        out["clock"] = self.clock.view(np.uint8)
+        if self.nodes is not None:
+            out["nodes"] = self.nodes
+        return out
 
 
 def lattice(lo: tuple[float, ...], hi: tuple[float, ...], spacing: float):

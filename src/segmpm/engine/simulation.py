@@ -33,7 +33,7 @@ from ..mpm.params import ST_DT_COLLAPSE, ST_OK, STATUS_TEXT
 from ..simulation import Simulation, SimulationError
 from ..state import D_DRIVER, D_INERTIAL, D_PRESSURE, D_SHEAR_RATE
 from .codegen import for_material
-from .records import POINT_STATE, XY, YY, YZ
+from .records import XY, YY, YZ
 from .setup import EngineState, build
 
 CROSS_VARIABLES = {
@@ -97,7 +97,22 @@ class EngineSimulation(Simulation):
         return int(self.clock["step"])
 
     def _prime(self) -> None:
-        pass
+        pass  # build() primes the state
+
+    def prime(self) -> None:
+        """Derive the initial state again from points edited before the first step (a launched,
+        pre-compacted or pre-sheared layer): the stress σ(ε^e, J), the diagnostics (p_e, γ̇, I,
+        S, c + |v|, ν) and, for the column, the first step's time-step bound. Raises
+        RuntimeError once the run has stepped (its state is then the loop's)."""
+        if self.steps:
+            raise RuntimeError(f"prime() derives the initial state; the run has already taken "
+                               f"{self.steps} steps")  # fmt: skip
+        e = self.engine
+        self.kernels.prime(e.points, e.mat)
+        if e.nodes is not None:
+            self.clock["smax"] = float(np.max(e.points.diag[4]))
+            self.clock["numax"] = float(np.max(e.points.diag[5]))
+        self._initial = self._invariants()
 
     def _advance_locked(self, t_stop: float, max_steps: int) -> tuple[int, int, int]:
         e = self.engine
@@ -388,11 +403,7 @@ class EngineSimulation(Simulation):
 
     # ------------------------------------------------------------------ checkpoints
     def save_checkpoint(self, path: str | Path) -> None:
-        P = self.engine.points
-        arrays = {k: getattr(P, k) for k in POINT_STATE}
-        arrays["clock"] = self.engine.clock.view(np.uint8)
-        if self.engine.nodes is not None:
-            arrays["nodes"] = self.engine.nodes
+        arrays = self.engine.arrays()
         meta = {"time": self.time, "steps": self.steps, "wall_time": self.wall_time,
                 "initial": self._initial, "configuration": self.config.to_dict(),
                 "segmpm_version": __version__, "dimension": self.dim}  # fmt: skip
@@ -401,11 +412,7 @@ class EngineSimulation(Simulation):
 
     def load_checkpoint(self, path: str | Path) -> None:
         arrays, meta = load_checkpoint(path)
-        P = self.engine.points
-        column = ("nodes",) if self.engine.nodes is not None else ()
-        for k in (*POINT_STATE, "clock", *column):
-            target = (self.engine.clock.view(np.uint8) if k == "clock" else
-                      self.engine.nodes if k == "nodes" else getattr(P, k))  # fmt: skip
+        for k, target in self.engine.arrays().items():
             if k not in arrays or arrays[k].shape != target.shape:
                 raise ValueError(f"checkpoint {path}: array {k} missing or of another shape "
                                  "(a checkpoint of another configuration or dimension?)")  # fmt: skip
