@@ -38,10 +38,20 @@ w0 = sim.wall_time
 t0 = time.perf_counter()
 sim.advance_to(end)
 el = time.perf_counter() - t0
-st = sim.state
-np.savez(f"/tmp/ab/state_{tag}.npz", x=st.x, v=st.v, sig=st.sig, phi=st.phi)
+# the default engine's points (generic since 2026-12-07, σ stored xx, yy, zz, xy) or the former
+# engine's state (σ stored xx, yy, xy, zz): saved in the former order
+generic = hasattr(sim, "engine")
+st = sim.engine.points if generic else sim.state
+sig = st.sig[[0, 1, 3, 2]] if generic else st.sig
+np.savez(f"/tmp/ab/state_{tag}.npz", x=st.x, v=st.v, sig=sig, phi=st.phi)
 print(
     json.dumps(
-        {"tag": tag, "steps": sim.steps, "loop_s": sim.wall_time - w0, "wall_s": el, "n": st.n}
+        {
+            "tag": tag,
+            "steps": sim.steps,
+            "loop_s": sim.wall_time - w0,
+            "wall_s": el,
+            "n": sim.state.n,
+        }
     )
 )

@@ -39,7 +39,7 @@ def experiment(a: float) -> float:
 
 def front(sim: Simulation) -> float:
     """Front of the deposit: the largest x where the layer is at least one point thick."""
-    x, y = sim.state.x
+    x, y = sim.engine.points.x
     order = np.sort(x)
     return float(order[-3]) if order.size > 3 else float(order[-1])
 
@@ -61,7 +61,8 @@ def run(a: float, H_CELL: float = H_CELL, base: str = "noslip", base_mu: float =
     history = []
     for k in range(1, 41):
         sim.advance_to(t_end * k / 40)
-        ke = 0.5 * float(np.sum(sim.state.mass * (sim.state.v**2).sum(0)))
+        P = sim.engine.points
+        ke = 0.5 * float(np.sum(P.mass * (P.v**2).sum(0)))
         history.append((sim.time, front(sim), ke))
     runout = (front(sim) - L0) / L0
     return {
@@ -69,7 +70,7 @@ def run(a: float, H_CELL: float = H_CELL, base: str = "noslip", base_mu: float =
         "runout": runout,
         "experiment": experiment(a),
         "relative_error": runout / experiment(a) - 1,
-        "final_height": float(sim.state.x[1].max()) / L0,
+        "final_height": float(sim.engine.points.x[1].max()) / L0,
         "kinetic_energy_final_over_max": history[-1][2] / max(h[2] for h in history),
         "wall_s": time.perf_counter() - t0,
         "n_points": sim.state.n,
