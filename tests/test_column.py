@@ -12,18 +12,7 @@ from segmpm.analysis.closed_form import bagnold_velocity, sidewall_velocity
 from segmpm.column import COL_U, COL_Y, column_step_np
 from segmpm.config import ConfigError, load_config
 from segmpm.engine.records import XX, XY, YY, ZZ
-from segmpm.mpm.params import (
-    S_DT,
-    S_NFLU,
-    S_NSEG,
-    S_NSLOTS,
-    S_NUMAX,
-    S_SMAX,
-    S_STEP,
-    S_TFLU,
-    S_TIME,
-    S_TSEG,
-)
+from segmpm.mpm import params as mpp
 
 COLUMN = ["scenario.solver='column'"]
 #: a thin layer of the seed preset (8 mm, the 2 mm / 3 mm mixture), quick for both solvers
@@ -52,9 +41,9 @@ CASES = {
 
 #: the production layout's tensor rows (xx, yy, xy, zz) in the generic engine's (xx, yy, zz, xy)
 TO_PRODUCTION = [XX, YY, XY, ZZ]
-#: the production scalar slots S_* of the generic clock's fields
-SLOTS = {S_TIME: "time", S_STEP: "step", S_TSEG: "tseg", S_SMAX: "smax", S_NUMAX: "numax",
-         S_DT: "dt", S_NSEG: "nseg", S_TFLU: "tflu", S_NFLU: "nflu"}  # fmt: skip
+#: the production scalar slots S_* of the generic clock's fields (same names, lower case)
+SLOTS = {getattr(mpp, "S_" + name.upper()): name
+         for name in ("time", "step", "tseg", "smax", "numax", "dt", "nseg", "tflu", "nflu")}  # fmt: skip
 
 
 def _production_layout(sim) -> dict[str, np.ndarray]:
@@ -66,7 +55,7 @@ def _production_layout(sim) -> dict[str, np.ndarray]:
                                             "s_int", "g_int")}  # fmt: skip
     out["eps"], out["sig"] = P.eps[TO_PRODUCTION].copy(), P.sig[TO_PRODUCTION].copy()
     out["nodes"] = sim.engine.nodes.copy()
-    out["sc"] = np.zeros(S_NSLOTS)
+    out["sc"] = np.zeros(mpp.S_NSLOTS)
     for slot, name in SLOTS.items():
         out["sc"][slot] = sim.clock[name]
     return out
