@@ -258,6 +258,27 @@ def test_file_size_limit_on_the_first_checkpoint(tmp_path):
     assert not (out / "checkpoint" / "state.npz").exists()
 
 
+def test_kernel_cache_that_cannot_be_written_exits_4_before_the_run(tmp_path):
+    """A cold kernel cache on a full file system (RLIMIT_FSIZE below the size of the generated
+    kernel source): the run stops with exit 4 naming the cache and SEGMPM_CACHE_DIR, before it
+    writes anything, and leaves no partial source behind (neither in the cache nor a private
+    temporary copy)."""
+    out, cache, tmp = tmp_path / "run", tmp_path / "cache", tmp_path / "tmp"
+    tmp.mkdir()
+    env = {**SUBPROCESS_ENV, "SEGMPM_CACHE_DIR": str(cache), "TMPDIR": str(tmp)}
+    proc = subprocess.Popen([sys.executable, "-m", "segmpm.cli", "run", "--out", str(out),
+                             *_args()], env=env, stderr=subprocess.PIPE,
+                            preexec_fn=_limited(8000))  # fmt: skip
+    _, err = proc.communicate(timeout=600)
+    err = err.decode()
+    assert proc.returncode == 4, err
+    assert "Traceback" not in err
+    assert "kernel cache" in err and "SEGMPM_CACHE_DIR" in err and "File too large" in err
+    assert not (out / "run.json").exists() and not (out / "checkpoint").exists()
+    assert list(tmp.iterdir()) == []
+    assert not list(cache.rglob("kernels_d*"))  # the source (> 8000 bytes) was never complete
+
+
 class _NoProfiles:
     """A profile writer that writes nothing: only the run's particle snapshot is under test."""
 
@@ -641,12 +662,6 @@ def test_sigint_is_honoured_within_2_s_of_a_long_chunk(tmp_path):
     assert load_checkpoint(out / "checkpoint" / "state.npz")[1]["time"] == info["time"]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the generic engine prints the start of a cold compile "
-    "but not 'kernels compiled in N s'; docs/architecture.md, 'Still missing', "
-    "item 3",
-)
 def test_compile_time_is_reported_apart(tmp_path, capsys, monkeypatch):
     import segmpm._cache
 

@@ -94,13 +94,6 @@ def test_interrupt_then_resume_gives_the_same_result(reference_run, tmp_path, si
     assert json.loads((out / "run.json").read_text())["status"] == "completed"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the generic engine's MPM build and prime() leave "
-    "clock smax/numax at 0 (only the column sets them), so a collapse at step 0 "
-    "reports max_signal_speed 0 and the first Δt ignores the initial state; "
-    "docs/architecture.md, 'Still missing', item 3",
-)
 def test_time_step_collapse_exits_3_with_diagnostic(tmp_path, capsys):
     # the stable step (≈ 7 µs here) is below the configured floor: the run must stop, not crawl
     rc = main(["run", "--out", str(tmp_path), *_args("time.dt_min=1e-4", "time.dt_max=1e-3")])

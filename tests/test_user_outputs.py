@@ -116,12 +116,6 @@ def test_flip_transfer_converges_to_the_bagnold_closed_form():
     assert abs(2 * r2 - r1 - 1) < 0.01, (r1, r2)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the generic engine's estimate lacks the production "
-    "wording and the warning above an hour; docs/architecture.md, 'Still "
-    "missing', item 3",
-)
 def test_run_prints_the_estimated_steps_and_wall_time(tmp_path, capsys):
     """The CLI prints the remaining steps at the current dt and the wall time at the measured
     rate after the first steps; a run estimated above an hour gets a warning."""

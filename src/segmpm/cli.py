@@ -348,7 +348,10 @@ def _run(args: argparse.Namespace) -> int:
                     print(f"segmpm: --overwrite: removed {len(removed)} segmpm file(s) from {out}"
                           + (f", kept {kept} other file(s)" if kept else ""),
                           file=sys.stderr)  # fmt: skip
-        sim = Simulation(cfg, out_dir=out)
+        try:
+            sim = Simulation(cfg, out_dir=out)  # generates and compiles (or loads) the kernels
+        except OSError as err:
+            return _cache_write_failure(err)
         print(f"segmpm {__version__}: {cfg.scenario.kind}, {sim.state.n} material points, "
               f"t_end = {cfg.time.end:g} s, {sim.threads} thread(s) ({sim.threads_reason}) → {out}",
               file=sys.stderr)  # fmt: skip
@@ -368,6 +371,19 @@ def _run(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     return res.exit_code
+
+
+def _cache_write_failure(err: OSError) -> int:
+    """The kernels' generated sources or compiled code could not be written (exit 4): the run
+    has not started, so nothing of it is lost."""
+    from ._cache import KERNEL_CACHE
+
+    path = err.filename or KERNEL_CACHE
+    cause = err.strerror or str(err) or type(err).__name__
+    print(f"segmpm: error: the kernels could not be written to the kernel cache ({path}: "
+          f"{cause}); the run has not started. Free space there, or point SEGMPM_CACHE_DIR at "
+          f"a writable directory (in use: {KERNEL_CACHE})", file=sys.stderr)  # fmt: skip
+    return EXIT_WRITE
 
 
 def _plot(out: Path) -> int:

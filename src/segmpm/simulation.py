@@ -269,13 +269,7 @@ class Simulation:
         left = max(0.0, end - self.time)
         n_steps = int(math.ceil(left / dt)) if dt > 0 else 0
         wall = n_steps * seconds / steps
-        msg = (f"segmpm: about {n_steps:,} more steps (dt = {dt:.3g} s, {self.state.n} points), "
-               f"estimated {_clock(wall)} of wall time at the rate of the first {steps} steps")  # fmt: skip
-        if wall > 3600.0:
-            msg += ("\nsegmpm: warning: this run is estimated to take more than an hour; check "
-                    "the resolved configuration (segmpm validate) - a file without `extends` "
-                    "starts from the schema's defaults, not the reduced-cost preset")  # fmt: skip
-        return msg
+        return _estimate_message(n_steps, dt, self.state.n, 2, wall, steps)
 
     def _collapsed_step(self) -> dict[str, Any]:
         """The time step the control asked for when it fell below ``time.dt_min`` (the same
@@ -671,6 +665,18 @@ class Simulation:
         for sig, h in getattr(self, "_old_handlers", {}).items():
             signal.signal(sig, h)
         self._old_handlers = {}
+
+
+def _estimate_message(n_steps: int, dt: float, n: int, dim: int, wall: float, steps: int) -> str:
+    """The remaining ``n_steps`` at ``dt`` of ``n`` points in ``dim`` dimensions and their
+    ``wall`` seconds at the rate of the first ``steps`` steps, with a warning above an hour."""
+    msg = (f"segmpm: about {n_steps:,} more steps (dt = {dt:.3g} s, {n} points, {dim}-D), "
+           f"estimated {_clock(wall)} of wall time at the rate of the first {steps} steps")  # fmt: skip
+    if wall > 3600.0:
+        msg += ("\nsegmpm: warning: this run is estimated to take more than an hour; check "
+                "the resolved configuration (segmpm validate) - a file without `extends` "
+                "starts from the schema's defaults, not the reduced-cost preset")  # fmt: skip
+    return msg
 
 
 def _eta(end: float, t: float, t_start: float, elapsed: float) -> float | None:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -114,9 +115,15 @@ def kernels(dim: int, law: int | None = None) -> ModuleType:
     try:
         _write_if_changed(path, text)
     except OSError:
-        # an unwritable cache: a private temporary copy (compiled anew in each process)
-        path = Path(tempfile.mkdtemp(prefix="segmpm-gen-")) / fname
-        path.write_text(text)
+        # an unwritable cache: a private temporary copy (compiled anew in each process); if
+        # that cannot be written either, the error reaches the caller and no copy is left
+        tmp = Path(tempfile.mkdtemp(prefix="segmpm-gen-"))
+        path = tmp / fname
+        try:
+            path.write_text(text)
+        except OSError:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
     name = f"segmpm._generated.{fname[:-3]}"
     spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None

@@ -401,10 +401,16 @@ def build_column(cfg: Config, threads: int = 1) -> EngineState:
     st = EngineState(dim=2, points=pts, grid=grid, prm=prm, mp=mp, clock=clock, seg=seg,
                      nodes=nodes, seg_points=pts._replace(vol0=vol0 * (hc / lx)))  # fmt: skip
     for_material(2, st.mat).prime(pts, st.mat)
-    # the first step's bound from the primed state (c + |v| and ν of every element)
-    clock["smax"] = float(np.max(pts.diag[4]))
-    clock["numax"] = float(np.max(pts.diag[5]))
+    prime_clock(st)
     return st
+
+
+def prime_clock(st: EngineState) -> None:
+    """The first step's time-step bound from the primed state: the largest signal speed
+    c + |v| and viscosity ν of the points (the loop then keeps them from each step)."""
+    d = st.points.diag
+    st.clock["smax"] = float(np.max(d[4])) if d.shape[1] else 0.0
+    st.clock["numax"] = float(np.max(d[5])) if d.shape[1] else 0.0
 
 
 def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
@@ -447,4 +453,5 @@ def build(cfg: Config, dim: int, threads: int = 1) -> EngineState:
     seg = segregation_grid(cfg, prm, x, k.N_CWORK)
     st = EngineState(dim=dim, points=pts, grid=grid, prm=prm, mp=mp, clock=clock, seg=seg)
     for_material(dim, st.mat).prime(pts, st.mat)
+    prime_clock(st)
     return st

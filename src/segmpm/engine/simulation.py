@@ -30,11 +30,11 @@ from ..analysis.profiles import bin_edges
 from ..config import Config, load_config
 from ..io.checkpoint import load_checkpoint, save_checkpoint
 from ..mpm.params import ST_DT_COLLAPSE, ST_OK, STATUS_TEXT
-from ..simulation import Simulation, SimulationError
+from ..simulation import Simulation, SimulationError, _estimate_message
 from ..state import D_DRIVER, D_INERTIAL, D_PRESSURE, D_SHEAR_RATE
 from .codegen import for_material
 from .records import XY, YY, YZ
-from .setup import EngineState, build
+from .setup import EngineState, build, prime_clock
 
 CROSS_VARIABLES = {
     "velocity_x": ("m s-1", "downslope velocity u, averaged along x"),
@@ -102,16 +102,14 @@ class EngineSimulation(Simulation):
     def prime(self) -> None:
         """Derive the initial state again from points edited before the first step (a launched,
         pre-compacted or pre-sheared layer): the stress σ(ε^e, J), the diagnostics (p_e, γ̇, I,
-        S, c + |v|, ν) and, for the column, the first step's time-step bound. Raises
+        S, c + |v|, ν) and the first step's time-step bound from them. Raises
         RuntimeError once the run has stepped (its state is then the loop's)."""
         if self.steps:
             raise RuntimeError(f"prime() derives the initial state; the run has already taken "
                                f"{self.steps} steps")  # fmt: skip
         e = self.engine
         self.kernels.prime(e.points, e.mat)
-        if e.nodes is not None:
-            self.clock["smax"] = float(np.max(e.points.diag[4]))
-            self.clock["numax"] = float(np.max(e.points.diag[5]))
+        prime_clock(e)
         self._initial = self._invariants()
 
     def _advance_locked(self, t_stop: float, max_steps: int) -> tuple[int, int, int]:
@@ -151,7 +149,13 @@ class EngineSimulation(Simulation):
             self.advance(self.time, 0)
         finally:
             self.wall_time = wall
-        return _time.perf_counter() - t0
+        took = _time.perf_counter() - t0
+        if cold:
+            import sys
+
+            print(f"segmpm: kernels compiled in {took:.0f} s (cached for the next runs)",
+                  file=sys.stderr, flush=True)  # fmt: skip
+        return took
 
     # ------------------------------------------------------------------ diagnostics
     def _diagnostic(self, status: int, idx: int) -> dict[str, Any]:
@@ -204,8 +208,7 @@ class EngineSimulation(Simulation):
         left = max(0.0, end - self.time)
         n_steps = int(math.ceil(left / dt)) if dt > 0 else 0
         wall = n_steps * seconds / steps
-        return (f"segmpm: about {n_steps:,} more steps (dt = {dt:.3g} s, {self.engine.n} points, "
-                f"{self.dim}-D), estimated {wall / 60:.1f} min of wall time")  # fmt: skip
+        return _estimate_message(n_steps, dt, self.engine.n, self.dim, wall, steps)
 
     def _invariants(self) -> dict[str, float]:
         P = self.engine.points
