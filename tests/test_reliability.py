@@ -160,7 +160,10 @@ def test_compiled_time_loop_is_cached():
     assert "Cannot cache" not in r.stderr, r.stderr
 
 
-def test_results_do_not_depend_on_thread_count():
+@pytest.mark.parametrize("preset", ["chute_seed", "chute_nonlocal"])
+def test_results_do_not_depend_on_thread_count(preset):
+    """One thread and two give the same state bit for bit: the local law, and the nonlocal one
+    whose fluidity step runs its loops in order on one thread and in parallel regions on two."""
     import numba
     from conftest import make_sim
 
@@ -169,7 +172,7 @@ def test_results_do_not_depend_on_thread_count():
     states = []
     for threads in (1, 2):
         sim = make_sim(["geometry.depth=0.006", "geometry.length=0.004",
-                        f"grid.threads={threads}"])  # fmt: skip
+                        f"grid.threads={threads}"], preset=preset)  # fmt: skip
         assert sim.threads == threads
         sim.advance_to(0.05)
         states.append({k: v.copy() for k, v in sim.engine.arrays().items()})

@@ -1537,60 +1537,75 @@ def _rough(kind, at, where, tol, side):
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def _fluidity_nodes(fw, prm, mat):
+def _fluidity_nodes(fw, prm, mat, serial):
     """Nodal g, diffusivity, capacity and kind from the P2G sums; returns max D/c (the explicit
     stability limit). The free surface is a zero-flux cut cell (capacity c = clamp(1.5 m/m_full −
     0.25, 0, 1)); nodes at and beyond a no-slip plane are Dirichlet nodes (g = 0); the
     frictional, slip and symmetry planes on node planes are zero-flux by the even extension
-    (``fold_fluidity``)."""
+    (``fold_fluidity``). The x-planes in parallel, or in order on one thread (a parallel region
+    costs microseconds, several per cent of the default run's step); the same result."""
     pr = prm[0]
     m0 = mat[0]
-    nx, ny, nz = fw.shape[1], fw.shape[2], fw.shape[3]
+    nx = fw.shape[1]
     h = pr.h
-    tol = 1e-9 * h
+    # the scalars out of the records before the parallel loop (docs/architecture.md, "Numba
+    # pitfalls")
+    wall = np.array([pr.base_kind, pr.xlo_kind, pr.xhi_kind, pr.zlo_kind, pr.zhi_kind])
+    at = np.array([pr.base_y, pr.xlo, pr.xhi, pr.zlo, pr.zhi])
+    closed = pr.periodic_x == 0
     m_full = m0.f * m0.rho_s * h**D
     coef = m0.ngf_a**2 / m0.t0
-    ds = m0.ds
-    dl = m0.dl
-    x0 = pr.origin[0]
-    y0 = pr.origin[1]
-    z0 = pr.origin[2]
-    closed = pr.periodic_x == 0
-    base_kind, base_y = pr.base_kind, pr.base_y
-    xlo_kind, xlo, xhi_kind, xhi = pr.xlo_kind, pr.xlo, pr.xhi_kind, pr.xhi
-    zlo_kind, zlo, zhi_kind, zhi = pr.zlo_kind, pr.zlo, pr.zhi_kind, pr.zhi
+    ds, dl = m0.ds, m0.dl
+    x0, y0, z0 = pr.origin[0], pr.origin[1], pr.origin[2]
     dmax = 0.0
-    for i in prange(nx):
-        xn = x0 + i * h
-        for j in range(ny):
-            yn = y0 + j * h
-            for k in range(nz):
-                zn = z0 + k * h
-                m = fw[W_M, i, j, k]
-                cap = min(1.0, max(0.0, FILL_SLOPE * m / m_full - FILL_OFFSET))
-                kind = K_ACTIVE if cap > 0.0 else K_EMPTY
-                rough = _rough(base_kind, yn, base_y, tol, -1)
-                if closed:
-                    rough = (rough or _rough(xlo_kind, xn, xlo, tol, -1)
-                             or _rough(xhi_kind, xn, xhi, tol, 1))  # fmt: skip
-                if D == 3:
-                    rough = (rough or _rough(zlo_kind, zn, zlo, tol, -1)
-                             or _rough(zhi_kind, zn, zhi, tol, 1))  # fmt: skip
-                if rough:
-                    kind = K_DIRICHLET
-                g = 0.0
-                dn = 0.0
-                if kind == K_ACTIVE:
-                    g = fw[W_MG, i, j, k] / m
-                    ph = min(1.0, max(0.0, fw[W_MPHI, i, j, k] / m))
-                    d = ph * ds + (1.0 - ph) * dl
-                    dn = coef * d * d
-                    dmax = max(dmax, dn / max(cap, CAPACITY_MIN))
-                fw[W_DIFF, i, j, k] = dn
-                fw[W_CAP, i, j, k] = max(cap, CAPACITY_MIN) if kind == K_ACTIVE else 0.0
-                fw[W_KIND, i, j, k] = kind
-                fw[W_G, i, j, k] = g
-                fw[W_G0, i, j, k] = g
+    if serial:
+        for i in range(nx):
+            dmax = max(dmax, _fluidity_nodes_plane(fw, i, h, x0, y0, z0, closed, wall, at,
+                                                   m_full, coef, ds, dl))  # fmt: skip
+    else:
+        for i in prange(nx):
+            dmax = max(dmax, _fluidity_nodes_plane(fw, i, h, x0, y0, z0, closed, wall, at,
+                                                   m_full, coef, ds, dl))  # fmt: skip
+    return dmax
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _fluidity_nodes_plane(fw, i, h, x0, y0, z0, closed, wall, at, m_full, coef, ds, dl):
+    """The nodes of the x-plane ``i`` (``_fluidity_nodes``; ``wall``/``at`` the kinds and
+    positions of the base, x- and z-planes); returns their max D/c."""
+    ny, nz = fw.shape[2], fw.shape[3]
+    tol = 1e-9 * h
+    dmax = 0.0
+    xn = x0 + i * h
+    for j in range(ny):
+        yn = y0 + j * h
+        for k in range(nz):
+            zn = z0 + k * h
+            m = fw[W_M, i, j, k]
+            cap = min(1.0, max(0.0, FILL_SLOPE * m / m_full - FILL_OFFSET))
+            kind = K_ACTIVE if cap > 0.0 else K_EMPTY
+            rough = _rough(wall[0], yn, at[0], tol, -1)
+            if closed:
+                rough = (rough or _rough(wall[1], xn, at[1], tol, -1)
+                         or _rough(wall[2], xn, at[2], tol, 1))  # fmt: skip
+            if D == 3:
+                rough = (rough or _rough(wall[3], zn, at[3], tol, -1)
+                         or _rough(wall[4], zn, at[4], tol, 1))  # fmt: skip
+            if rough:
+                kind = K_DIRICHLET
+            g = 0.0
+            dn = 0.0
+            if kind == K_ACTIVE:
+                g = fw[W_MG, i, j, k] / m
+                ph = min(1.0, max(0.0, fw[W_MPHI, i, j, k] / m))
+                d = ph * ds + (1.0 - ph) * dl
+                dn = coef * d * d
+                dmax = max(dmax, dn / max(cap, CAPACITY_MIN))
+            fw[W_DIFF, i, j, k] = dn
+            fw[W_CAP, i, j, k] = max(cap, CAPACITY_MIN) if kind == K_ACTIVE else 0.0
+            fw[W_KIND, i, j, k] = kind
+            fw[W_G, i, j, k] = g
+            fw[W_G0, i, j, k] = g
     return dmax
 
 
@@ -1654,12 +1669,13 @@ def _advance_plane(fw, i, ny, nz, ds):
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def diffuse(fw, prm, dt, dmax, planes):
+def diffuse(fw, prm, dt, dmax, planes, serial=False):
     """Explicit finite-volume diffusion of the nodal g over ``dt`` in sub-steps below the
     stability limit h²/(2 D max D/c): c_i ∂g_i/∂t = Σ_faces D_f (g_j − g_i)/h² over the 2 D
     neighbours (periodic in x if the grid is). Returns the number of sub-steps. The x-planes
-    in parallel; a grid one node wide (the column model) serially, without the cost of two
-    parallel regions per sub-step (4× the production column's fluidity step with them)."""
+    in parallel; a grid one node wide (the column model), or any grid on one thread, serially,
+    without the cost of two parallel regions per sub-step (4× the production column's fluidity
+    step with them)."""
     if not (dmax > 0.0) or not (dt > 0.0):
         return 0
     pr = prm[0]
@@ -1672,6 +1688,11 @@ def diffuse(fw, prm, dt, dmax, planes):
         if nx == 1:
             _laplacian_plane(fw, 0, nx, ny, nz, periodic, ih2)
             _advance_plane(fw, 0, ny, nz, ds)
+        elif serial:  # the same planes in order: the same result without the regions' cost
+            for i in range(nx):
+                _laplacian_plane(fw, i, nx, ny, nz, periodic, ih2)
+            for i in range(nx):
+                _advance_plane(fw, i, ny, nz, ds)
         else:
             for i in prange(nx):
                 _laplacian_plane(fw, i, nx, ny, nz, periodic, ih2)
@@ -1693,9 +1714,10 @@ def stress_ratio6(sxx, syy, szz, sxy, sxz, syz, p):
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def _fluidity_g2p(P, fw, prm, mat, dt, nsub):
+def _fluidity_g2p(P, fw, prm, mat, dt, nsub, serial):
     """The nodal increment of g back to the points (blended with a PIC share of the nodal
-    value), then the local relaxation at each point with its own μ, p_e and d̄."""
+    value), then the local relaxation at each point with its own μ, p_e and d̄. In parallel, or
+    in order on one thread (the same result without the region's cost)."""
     pr = prm[0]
     m0 = mat[0]
     ih = 1.0 / pr.h
@@ -1704,52 +1726,64 @@ def _fluidity_g2p(P, fw, prm, mat, dt, nsub):
     x0 = pr.origin[0]
     y0 = pr.origin[1]
     z0 = pr.origin[2]
-    rho_s, mu_s, t0, b_, pfloor = m0.rho_s, m0.mu_s, m0.t0, m0.ngf_b, m0.pfloor
-    ds = m0.ds
-    dl = m0.dl
+    law = np.array([m0.rho_s, m0.mu_s, m0.t0, m0.ngf_b, m0.pfloor, m0.ds, m0.dl])
     x = P.x
     gf = P.gf
     phi = P.phi
     sig = P.sig
     pres = P.diag[0]
-    for p in prange(x.shape[1]):
-        g = gf[p]
-        if nsub > 0:
-            bx, wx0, wx1, wx2, _, _, _, _ = bspline2_frac((x[0, p] - x0) * ih)
-            by, wy0, wy1, wy2, _, _, _, _ = bspline2_frac((x[1, p] - y0) * ih)
-            if D == 3:
-                zp = x[2, p]
-            else:
-                zp = 0.0
-            bz, wz0, wz1, wz2, _, _, _, _ = _z_axis(zp, z0, ih)
-            wx = (wx0, wx1, wx2)
-            wy = (wy0, wy1, wy2)
-            wz = (wz0, wz1, wz2)
-            dg = 0.0
-            gi = 0.0
-            wsum = 0.0
-            for a in range(3):
-                i = _wrap(bx + a, nx) if periodic else bx + a
-                for b in range(3):
-                    j = by + b
-                    wab = wx[a] * wy[b]
-                    for c in range(SZ):
-                        k = bz + c
-                        if fw[W_KIND, i, j, k] != K_EMPTY:
-                            w = wab * wz[c]
-                            dg += w * (fw[W_G, i, j, k] - fw[W_G0, i, j, k])
-                            gi += w * fw[W_G, i, j, k]
-                            wsum += w
-            g = g + dg
-            if wsum > 0.0:
-                g = (1.0 - PIC) * g + PIC * gi / wsum
-            # a point diffused to (or below) zero keeps a tiny positive g, so that it is not
-            # seeded again (only g = 0, material that never had fluidity, is seeded)
-            g = max(TINY, g) if gf[p] > 0.0 else max(0.0, g)
-        sxx, syy, szz, sxy, sxz, syz = _sym(sig, p)
-        mu = stress_ratio6(sxx, syy, szz, sxy, sxz, syz, pres[p])
-        dbar = phi[p] * ds + (1.0 - phi[p]) * dl
-        gf[p] = relax_logistic(g, mu, pres[p], dbar, dt, rho_s, mu_s, t0, b_, pfloor)
+    if serial:
+        for p in range(x.shape[1]):
+            _fluidity_g2p_point(x, gf, phi, sig, pres, fw, ih, nx, periodic, x0, y0, z0, law,
+                                dt, nsub, p)  # fmt: skip
+    else:
+        for p in prange(x.shape[1]):
+            _fluidity_g2p_point(x, gf, phi, sig, pres, fw, ih, nx, periodic, x0, y0, z0, law,
+                                dt, nsub, p)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _fluidity_g2p_point(x, gf, phi, sig, pres, fw, ih, nx, periodic, x0, y0, z0, law, dt, nsub,
+                        p):  # fmt: skip
+    """``_fluidity_g2p`` of the point ``p`` (``law`` = ρ_s, μ_s, t₀, b, p_floor, d_s, d_l)."""
+    rho_s, mu_s, t0, b_, pfloor, ds, dl = law[0], law[1], law[2], law[3], law[4], law[5], law[6]
+    g = gf[p]
+    if nsub > 0:
+        bx, wx0, wx1, wx2, _, _, _, _ = bspline2_frac((x[0, p] - x0) * ih)
+        by, wy0, wy1, wy2, _, _, _, _ = bspline2_frac((x[1, p] - y0) * ih)
+        if D == 3:
+            zp = x[2, p]
+        else:
+            zp = 0.0
+        bz, wz0, wz1, wz2, _, _, _, _ = _z_axis(zp, z0, ih)
+        wx = (wx0, wx1, wx2)
+        wy = (wy0, wy1, wy2)
+        wz = (wz0, wz1, wz2)
+        dg = 0.0
+        gi = 0.0
+        wsum = 0.0
+        for a in range(3):
+            i = _wrap(bx + a, nx) if periodic else bx + a
+            for b in range(3):
+                j = by + b
+                wab = wx[a] * wy[b]
+                for c in range(SZ):
+                    k = bz + c
+                    if fw[W_KIND, i, j, k] != K_EMPTY:
+                        w = wab * wz[c]
+                        dg += w * (fw[W_G, i, j, k] - fw[W_G0, i, j, k])
+                        gi += w * fw[W_G, i, j, k]
+                        wsum += w
+        g = g + dg
+        if wsum > 0.0:
+            g = (1.0 - PIC) * g + PIC * gi / wsum
+        # a point diffused to (or below) zero keeps a tiny positive g, so that it is not
+        # seeded again (only g = 0, material that never had fluidity, is seeded)
+        g = max(TINY, g) if gf[p] > 0.0 else max(0.0, g)
+    sxx, syy, szz, sxy, sxz, syz = _sym(sig, p)
+    mu = stress_ratio6(sxx, syy, szz, sxy, sxz, syz, pres[p])
+    dbar = phi[p] * ds + (1.0 - phi[p]) * dl
+    gf[p] = relax_logistic(g, mu, pres[p], dbar, dt, rho_s, mu_s, t0, b_, pfloor)
 
 
 @njit(cache=True, error_model="numpy")
@@ -1759,15 +1793,19 @@ def fluidity_step(P, G, prm, mat, dt):
     then the exact local relaxation at the points. Returns the number of diffusion sub-steps."""
     fw = G.fw
     nsub = 0
+    # one thread (the slab runs of P2G are sized for the call's thread count): the loops in
+    # order, without the cost of parallel regions; the same result (not numba's
+    # get_num_threads(), which would make the loop uncacheable)
+    serial = G.bounds.shape[0] == 2
     if mat[0].ngf_a > 0.0:
         for f in (W_M, W_MG, W_MPHI):
             fw[f] = 0.0
         _fluidity_p2g(P, fw, prm)
         planes = fluidity_planes(prm)
         fold_fluidity(fw, planes)  # image nodes behind the zero-flux planes
-        dmax = _fluidity_nodes(fw, prm, mat)
-        nsub = diffuse(fw, prm, dt, dmax, planes)
-    _fluidity_g2p(P, fw, prm, mat, dt, nsub)
+        dmax = _fluidity_nodes(fw, prm, mat, serial)
+        nsub = diffuse(fw, prm, dt, dmax, planes, serial)
+    _fluidity_g2p(P, fw, prm, mat, dt, nsub, serial)
     return nsub
 
 
