@@ -5,7 +5,7 @@
 # cache, one thread each: grid.threads = "auto" for 596 points). Writes
 # benchmarks/results/default-engines-2026-12-07.txt.
 cd "$(dirname "$0")/.."
-R=benchmarks/results/default-engines-2026-12-07.txt
+R=${1:-benchmarks/results/default-engines-2026-12-07.txt}  # the result file (argument 1)
 : > $R
 date >> $R
 awk '/^cpu /{print "steal jiffies (cumulative):", $9}' /proc/stat >> $R
