@@ -1550,8 +1550,8 @@ def _fluidity_nodes(fw, prm, mat, serial):
     h = pr.h
     # the scalars out of the records before the parallel loop (docs/architecture.md, "Numba
     # pitfalls")
-    wall = np.array([pr.base_kind, pr.xlo_kind, pr.xhi_kind, pr.zlo_kind, pr.zhi_kind])
-    at = np.array([pr.base_y, pr.xlo, pr.xhi, pr.zlo, pr.zhi])
+    wall = (pr.base_kind, pr.xlo_kind, pr.xhi_kind, pr.zlo_kind, pr.zhi_kind)
+    at = (pr.base_y, pr.xlo, pr.xhi, pr.zlo, pr.zhi)
     closed = pr.periodic_x == 0
     m_full = m0.f * m0.rho_s * h**D
     coef = m0.ngf_a**2 / m0.t0
@@ -1726,7 +1726,7 @@ def _fluidity_g2p(P, fw, prm, mat, dt, nsub, serial):
     x0 = pr.origin[0]
     y0 = pr.origin[1]
     z0 = pr.origin[2]
-    law = np.array([m0.rho_s, m0.mu_s, m0.t0, m0.ngf_b, m0.pfloor, m0.ds, m0.dl])
+    law = (m0.rho_s, m0.mu_s, m0.t0, m0.ngf_b, m0.pfloor, m0.ds, m0.dl)  # no allocation per step
     x = P.x
     gf = P.gf
     phi = P.phi
@@ -1746,7 +1746,7 @@ def _fluidity_g2p(P, fw, prm, mat, dt, nsub, serial):
 def _fluidity_g2p_point(x, gf, phi, sig, pres, fw, ih, nx, periodic, x0, y0, z0, law, dt, nsub,
                         p):  # fmt: skip
     """``_fluidity_g2p`` of the point ``p`` (``law`` = ρ_s, μ_s, t₀, b, p_floor, d_s, d_l)."""
-    rho_s, mu_s, t0, b_, pfloor, ds, dl = law[0], law[1], law[2], law[3], law[4], law[5], law[6]
+    rho_s, mu_s, t0, b_, pfloor, ds, dl = law
     g = gf[p]
     if nsub > 0:
         bx, wx0, wx1, wx2, _, _, _, _ = bspline2_frac((x[0, p] - x0) * ih)
