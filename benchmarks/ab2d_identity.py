@@ -1,15 +1,18 @@
-"""2-D identity and throughput of a checkout against another, on the seed preset (chute_seed,
-1 s, one thread): one run per call, so that calls can be interleaved A/B/A/B.
+"""2-D identity and throughput of a checkout against another, on a preset (default chute_seed,
+the seed's local model; chute_nonlocal the nonlocal default), one thread: one run per call, so
+that calls can be interleaved A/B/A/B.
 
     git worktree add /tmp/wt_pre 19ee395      # the commit before the generic engine
     for r in 1 2 3 4 5; do
-      NUMBA_NUM_THREADS=1 python benchmarks/ab2d_identity.py $PWD/src head 1.0
-      NUMBA_NUM_THREADS=1 python benchmarks/ab2d_identity.py /tmp/wt_pre/src pre 1.0
+      NUMBA_NUM_THREADS=1 python benchmarks/ab2d_identity.py $PWD/src head 1.0 [PRESET]
+      NUMBA_NUM_THREADS=1 python benchmarks/ab2d_identity.py /tmp/wt_pre/src pre 1.0 [PRESET]
     done
     python -c "import numpy as np; a, b = np.load('/tmp/ab/state_pre.npz'), np.load('/tmp/ab/state_head.npz'); print(all(np.array_equal(a[k], b[k]) for k in a.files))"
 
-Each call prints a JSON line (steps, loop seconds excluding the compile) and saves the final
-state to /tmp/ab/state_<tag>.npz.
+(With a PRESET other than chute_seed the files are ``state_<tag>_<PRESET>.npz``.) Each call
+prints a JSON line (steps, loop seconds excluding the compile) and saves the final state to
+/tmp/ab/state_<tag>.npz. Both checkouts may share one ``SEGMPM_CACHE_DIR``: the kernel cache is
+keyed by a hash of the sources.
 """
 
 import json
@@ -22,6 +25,8 @@ import numpy as np
 src = sys.argv[1]
 tag = sys.argv[2]
 end = float(sys.argv[3])
+preset = sys.argv[4] if len(sys.argv) > 4 else "chute_seed"
+suffix = "" if preset == "chute_seed" else f"_{preset}"
 sys.path.insert(0, src)
 import segmpm  # noqa: E402
 from segmpm.config import load_config  # noqa: E402
@@ -30,9 +35,9 @@ from segmpm.simulation import Simulation  # noqa: E402
 os.makedirs("/tmp/ab", exist_ok=True)
 assert segmpm.__file__.startswith(src), segmpm.__file__
 cfg = load_config(
-    None, [f"time.end={end}", "output.progress=false", "grid.threads=1"], preset="chute_seed"
+    None, [f"time.end={end}", "output.progress=false", "grid.threads=1"], preset=preset
 )
-sim = Simulation(cfg, f"/tmp/ab/out_{tag}")
+sim = Simulation(cfg, f"/tmp/ab/out_{tag}{suffix}")
 sim.advance_to(1e-4)  # compile
 w0 = sim.wall_time
 t0 = time.perf_counter()
@@ -43,15 +48,16 @@ el = time.perf_counter() - t0
 generic = hasattr(sim, "engine")
 st = sim.engine.points if generic else sim.state
 sig = st.sig[[0, 1, 3, 2]] if generic else st.sig
-np.savez(f"/tmp/ab/state_{tag}.npz", x=st.x, v=st.v, sig=sig, phi=st.phi)
+np.savez(f"/tmp/ab/state_{tag}{suffix}.npz", x=st.x, v=st.v, sig=sig, phi=st.phi)
 print(
     json.dumps(
         {
             "tag": tag,
+            "preset": preset,
             "steps": sim.steps,
             "loop_s": sim.wall_time - w0,
             "wall_s": el,
-            "n": sim.state.n,
+            "n": sim.engine.n if generic else sim.state.n,
         }
     )
 )

@@ -1,4 +1,6 @@
-"""Generic / production cost ratios of a ``segmpm bench --json`` run, per case.
+"""Generic / production cost ratios of a ``segmpm bench --json`` run of the former A/B variants
+(``generic-*``, removed with the plane-strain engine on 2026-12-07), per case: it reads the
+committed result files of that A/B.
 
 Each ``generic-X`` variant is divided by ``X`` round by round (the rounds interleave the
 variants, so a ratio within a round shares the machine's state of that moment); prints the

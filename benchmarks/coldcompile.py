@@ -3,7 +3,10 @@ cache (set ``SEGMPM_CACHE_DIR`` to a new directory), printing the set-up (which 
 initial stress pass) and first-call seconds as JSON. Run two source trees side by side (one with
 ``PYTHONPATH=<other tree>/src``) so that both see the same load:
 
-    SEGMPM_CACHE_DIR=$(mktemp -d) python benchmarks/coldcompile.py generic-local
+    SEGMPM_CACHE_DIR=$(mktemp -d) python benchmarks/coldcompile.py local
+
+(The variant was ``generic-local`` until the former plane-strain engine was removed on
+2026-12-07; ``local`` is now the same case on the one engine.)
 """
 
 from __future__ import annotations

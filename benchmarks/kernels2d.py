@@ -1,9 +1,13 @@
-"""Where the 2-D step spends its time, on each engine: ns per particle-step of every kernel of the
-step (sort, P2G, image nodes, grid update, G2P, material law) of the production plane-strain
-engine (segmpm.mpm) and of the dimension-generic engine with D = 2 (segmpm.engine), on the seed
-chute (local model) with about 32k points (``--points``), one thread (``--threads``), blocks of the two engines interleaved.
+"""Where the 2-D step spends its time: ns per particle-step of every kernel of the step (sort,
+P2G, image nodes, grid update, G2P, material law) of the engine with D = 2 (segmpm.engine), on
+the seed chute (local model) with about 32k points (``--points``), one thread (``--threads``).
 
-    python benchmarks/kernels2d.py --out benchmarks/results/kernels2d-2026-12-03.json
+    python benchmarks/kernels2d.py --out benchmarks/results/kernels2d-<date>.json
+
+Until 2026-12-07 it also timed the former plane-strain engine (segmpm.mpm), blocks of the two
+interleaved (``git show 61df0f7:benchmarks/kernels2d.py``; the results files of 2026-12-03 to
+2026-12-07 hold both columns). The 2-D A/B against the commit before the generic engine is
+benchmarks/ab2d_identity.py.
 
 Each kernel is called from Python once per step (after a warm-up that compiles it), so the sum
 of the kernels is a little above the cost of the compiled loop (``advance``), also reported.
@@ -23,42 +27,10 @@ import numba
 from segmpm.bench import _config_for
 from segmpm.engine.codegen import for_material
 from segmpm.engine.setup import build
-from segmpm.mpm import step as S
-from segmpm.mpm import transfer as T
-from segmpm.mpm.params import G_GX, G_GY, S_DT
-from segmpm.simulation import Simulation, _bounds
-
-
-def production(n_points: int, threads: int):
-    sim = Simulation(_config_for(n_points, "local"))
-    sim.threads = threads
-    sim.advance(1e9, 100)
-    st, w = sim.state, sim.state.work
-    bounds = _bounds(w)
-    nt = bounds.shape[0] - 1
-    images = T.image_pairs(st.gp, w["grid"].shape[0], w["grid"].shape[1])
-    nstrips = w["strip_start"].shape[0] - 1
-    dt = float(st.sc[S_DT])
-    grid, gv = w["grid"], w["gv"]
-    calls = {
-        "sort": lambda: T.counting_sort(w["cursor"], w["strip_start"], w["order"], nt),
-        "p2g": lambda: T.p2g(st.x, st.v, st.C, st.mass, st.vol0, st.J, st.sig, st.diag[0],
-                             st.gp, grid, w["strip_start"], w["order"], bounds, True),
-        "images": lambda: (T.fold_images(grid, images, st.gp[G_GX], st.gp[G_GY]),
-                           T.mirror_images(gv, images)),
-        "grid_update": lambda: T.grid_update(st.gp, grid, gv, dt, 1.0, True),
-        "g2p": lambda: S.update_points(st.x, st.v, st.C, st.J, st.gp, gv, dt, w["flags"],
-                                       w["cursor"], nstrips, w["lg"]),
-        "material": lambda: S.update_stress(st.x, st.v, st.J, st.eps, st.sig, st.phi, st.gf,
-                                            st.diag, st.s_int, st.g_int, st.mp, dt, w["flags"],
-                                            w["lg"], False, nt),
-        "advance": lambda: sim.advance(1e9, 1),
-    }  # fmt: skip
-    return st.n, calls
 
 
 def generic(n_points: int, threads: int):
-    cfg = _config_for(n_points, "generic-local")
+    cfg = _config_for(n_points, "local")
     st = build(cfg, 2, threads=threads)
     k = for_material(2, st.mat)
     P, G, prm, mat, clock, seg = st.points, st.grid, st.prm, st.mat, st.clock, st.seg
@@ -88,10 +60,7 @@ def main() -> None:
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     numba.set_num_threads(args.threads)
-    engines = {
-        "production": production(args.points, args.threads),
-        "generic": generic(args.points, args.threads),
-    }
+    engines = {"generic": generic(args.points, args.threads)}
     times: dict[str, dict[str, list[float]]] = {e: {} for e in engines}
     for _n, calls in engines.values():  # warm-up: compile every kernel called from Python
         for f in calls.values():
@@ -107,12 +76,11 @@ def main() -> None:
     res = {"command": " ".join(sys.argv), "machine": platform.processor() or platform.machine(),
            "threads": args.threads, "numba": numba.__version__,
            "points": {e: engines[e][0] for e in engines}, "ns_per_particle_step": {}}  # fmt: skip
-    print(f"{'kernel':>12} {'production':>11} {'generic':>9} {'ratio':>6}   (ns per particle-step)")
-    for name in engines["production"][1]:
-        a = statistics.median(times["production"][name])
+    print(f"{'kernel':>12} {'ns per particle-step':>21}")
+    for name in engines["generic"][1]:
         b = statistics.median(times["generic"][name])
-        res["ns_per_particle_step"][name] = {"production": a, "generic": b, "ratio": b / a}
-        print(f"{name:>12} {a:11.1f} {b:9.1f} {b / a:6.2f}")
+        res["ns_per_particle_step"][name] = {"generic": b}
+        print(f"{name:>12} {b:21.1f}")
     if args.out:
         with open(args.out, "w") as f:
             json.dump(res, f, indent=1)

@@ -118,8 +118,14 @@ def test_peer_initial_orders(n):
 
 def test_bench_times_the_nonlocal_variant_against_the_local(tmp_path):
     """--variants local nonlocal: both models at the same size, blocks interleaved, the nonlocal
-    one's cost ratio the median of the within-round ratios of the two blocks."""
+    one's cost ratio the median of the within-round ratios of the two blocks; the parser's list
+    of variants is the bench's."""
     import statistics
+
+    from segmpm.bench import VARIANTS
+    from segmpm.cli import BENCH_VARIANTS
+
+    assert BENCH_VARIANTS == list(VARIANTS)
 
     out = tmp_path / "bench.json"
     assert main(["bench", "--sizes", "600", "--threads", "1", "--steps", "20", "--repeats", "3",
@@ -129,20 +135,3 @@ def test_bench_times_the_nonlocal_variant_against_the_local(tmp_path):
     assert loc["n_points"] == nl["n_points"]
     ratios = [a / b for a, b in zip(nl["block_wall_s"], loc["block_wall_s"], strict=True)]
     assert nl["cost_ratio_vs_local"] == pytest.approx(statistics.median(ratios))
-
-
-def test_bench_generic_variant_runs_the_same_case_on_the_generic_engine(tmp_path):
-    """--variants local generic-local: the same seed chute on both engines (grid.engine), same
-    points and steps; the parser's list of variants is the bench's."""
-    from segmpm.bench import VARIANTS, _config_for
-    from segmpm.cli import BENCH_VARIANTS
-
-    assert BENCH_VARIANTS == list(VARIANTS)
-    assert _config_for(600, "generic-local").grid.engine == "generic"
-    assert _config_for(600, "local").grid.engine == "production"
-    out = tmp_path / "bench.json"
-    assert main(["bench", "--sizes", "600", "--threads", "1", "--steps", "20", "--repeats", "2",
-                 "--no-peer", "--variants", "local", "generic-local", "--json", str(out)]) == 0  # fmt: skip
-    loc, gen = json.loads(out.read_text())["results"]
-    assert gen["variant"] == "generic-local" and loc["n_points"] == gen["n_points"]
-    assert gen["cost_ratio_vs_local"] > 0

@@ -9,7 +9,7 @@ import pytest
 from conftest import make_sim
 
 from segmpm.analysis.closed_form import bagnold_velocity, sidewall_velocity
-from segmpm.column import COL_U, COL_Y, column_step_np
+from segmpm.column import COL_U, COL_Y, build_column, column_step_np
 from segmpm.config import ConfigError, load_config
 from segmpm.engine.records import XX, XY, YY, ZZ
 from segmpm.mpm import params as mpp
@@ -39,21 +39,19 @@ CASES = {
 }
 
 
-#: the production layout's tensor rows (xx, yy, xy, zz) in the generic engine's (xx, yy, zz, xy)
-TO_PRODUCTION = [XX, YY, XY, ZZ]
-#: the production scalar slots S_* of the generic clock's fields (same names, lower case)
+#: the twin's tensor rows (xx, yy, xy, zz) in the engine's (xx, yy, zz, xy)
+TO_TWIN = [XX, YY, XY, ZZ]
+#: the twin's scalar slots S_* of the engine clock's fields (same names, lower case)
 SLOTS = {getattr(mpp, "S_" + name.upper()): name
          for name in ("time", "step", "tseg", "smax", "numax", "dt", "nseg", "tflu", "nflu")}  # fmt: skip
 
 
-def _production_layout(sim) -> dict[str, np.ndarray]:
-    """The state of a column run in the production layout that ``column_step_np`` reads."""
-    if type(sim).__name__ == "Simulation":
-        return {k: v.copy() for k, v in sim.state.arrays().items()}
+def _twin_layout(sim) -> dict[str, np.ndarray]:
+    """The state of a column run in the layout that ``column_step_np`` reads (segmpm.state)."""
     P = sim.engine.points
     out = {k: getattr(P, k).copy() for k in ("x", "v", "mass", "vol0", "J", "phi", "gf", "diag",
                                             "s_int", "g_int")}  # fmt: skip
-    out["eps"], out["sig"] = P.eps[TO_PRODUCTION].copy(), P.sig[TO_PRODUCTION].copy()
+    out["eps"], out["sig"] = P.eps[TO_TWIN].copy(), P.sig[TO_TWIN].copy()
     out["nodes"] = sim.engine.nodes.copy()
     out["sc"] = np.zeros(mpp.S_NSLOTS)
     for slot, name in SLOTS.items():
@@ -61,35 +59,28 @@ def _production_layout(sim) -> dict[str, np.ndarray]:
     return out
 
 
-@pytest.mark.parametrize("engine", ["generic", "production"])
 @pytest.mark.parametrize("case", sorted(CASES))
-def test_one_column_step_matches_numpy_reference(case, engine, rng):
-    """One step of either engine's compiled column (a sheared, slightly compressed column with
-    random fluidity and φ_s) is the NumPy twin's to round-off. The twin reads the production
-    layout and grid record; the generic state is translated into it."""
+def test_one_column_step_matches_numpy_reference(case, rng):
+    """One step of the engine's compiled column (a sheared, slightly compressed column with
+    random fluidity and φ_s) is the NumPy twin's to round-off. The twin reads the layout and
+    grid record of segmpm.state (``column.build_column``); the engine's state is translated into
+    it."""
     over = [*COLUMN, *CASES[case], "boundary.ramp_time=0.1"]
-    sim = make_sim([*over, f"grid.engine='{engine}'"])
-    twin = make_sim([*over, "grid.engine='production'"]).state  # the twin's grid and material
-    st = sim.state
-    P = st if engine == "production" else st.points
-    eps_xy = 2 if engine == "production" else XY
-    st.nodes[COL_U, 1:] = rng.uniform(0.0, 0.1, st.n)
-    st.nodes[COL_U + 1, 1:] = rng.normal(scale=1e-3, size=st.n)
-    P.eps[eps_xy] += rng.normal(scale=1e-6, size=st.n)
-    P.phi[:] = rng.uniform(0, 1, st.n)
-    P.gf[:] = rng.uniform(0, 50, st.n)
-    if engine == "production":
-        sim._prime()
-        st.sc[1] = 0
-        sim._primed = False
-        sim._prime()
-    else:
-        sim.prime()
-    before = _production_layout(sim)
+    sim = make_sim(over)
+    twin = build_column(sim.config)  # the twin's grid and material records
+    P = sim.engine.points
+    n = sim.engine.n
+    sim.engine.nodes[COL_U, 1:] = rng.uniform(0.0, 0.1, n)
+    sim.engine.nodes[COL_U + 1, 1:] = rng.normal(scale=1e-3, size=n)
+    P.eps[XY] += rng.normal(scale=1e-6, size=n)
+    P.phi[:] = rng.uniform(0, 1, n)
+    P.gf[:] = rng.uniform(0, 50, n)
+    sim.prime()
+    before = _twin_layout(sim)
     ref = column_step_np(before, twin.gp, twin.mp)
     status, _, n = sim.advance(1.0, 1)
     assert status == 0 and n == 1
-    after = _production_layout(sim)
+    after = _twin_layout(sim)
     for k, b in ref.items():
         scale = max(np.max(np.abs(b)), 1e-300)
         np.testing.assert_allclose(after[k], b, rtol=0, atol=1e-11 * scale, err_msg=k)
@@ -114,7 +105,7 @@ def test_steady_chute_matches_the_local_closed_forms(theta, H, mu_w, t_end):
     over = [f"geometry.slope_deg={theta}", f"geometry.depth={H}", "segregation.model='none'",
             f"boundary.sidewall_friction={mu_w}", "material.stiffness_scale=1e-3"]  # fmt: skip
     sim = _steady(over, t_end)
-    y, u = sim.state.nodes[COL_Y], sim.state.nodes[COL_U]
+    y, u = sim.engine.nodes[COL_Y], sim.engine.nodes[COL_U]
     if mu_w == 0.0:
         th, zf = bagnold_velocity(sim.config, y), H
     else:
@@ -155,31 +146,7 @@ def test_column_conserves_mass_and_small_grains_and_keeps_bounds():
     P = sim.engine.points
     assert np.all((P.phi >= 0.0) & (P.phi <= 1.0))
     assert np.all(np.isfinite(P.gf)) and np.max(P.gf) > 0.0
-    assert sim.state.nodes[COL_U, 0] == 0.0  # the no-slip base
-
-
-@pytest.mark.parametrize("case", list(CASES))
-def test_generic_engine_column_is_the_production_column(case):
-    """The default engine runs the column on the dimension-generic kernels (D = 2 with
-    the column's ∂/∂y-only kinematics, its base and sidewall from the engine's plane and drag
-    closures, the same law, fluidity and concentration steps as the 2-D MPM). The two
-    evaluate the same formulas in another order, so with the same step count they must agree
-    to round-off: within 1e-9 of u_s, of φ_s and of the peak pressure and fluidity after
-    0.05 s, far below a modelling difference (a changed constant shows at 1e-3)."""
-    over = [*COLUMN, *CASES[case]]
-    a = make_sim([*over, "grid.engine='production'"])
-    b = make_sim(over)
-    assert type(a).__name__ == "Simulation" and type(b).__name__ == "EngineSimulation"
-    for s in (a, b):
-        s.advance_to(0.05)
-    assert a.steps == b.steps > 1000
-    pa, pb = a.profiles(), b.profiles()
-    us = float(np.nanmax(np.abs(pa["velocity_x"])))
-    assert us > 1e-3  # the layer moves
-    for key, scale in (("velocity_x", us), ("phi_small", 1.0),
-                       ("pressure", float(np.nanmax(pa["pressure"]))),
-                       ("fluidity", max(float(np.nanmax(pa["fluidity"])), 1e-300))):  # fmt: skip
-        np.testing.assert_allclose(pb[key], pa[key], rtol=0, atol=1e-9 * scale, err_msg=key)
+    assert sim.engine.nodes[COL_U, 0] == 0.0  # the no-slip base
 
 
 def test_column_resume_is_bit_identical(tmp_path):
@@ -195,8 +162,8 @@ def test_column_resume_is_bit_identical(tmp_path):
     c = make_sim(over, out_dir=tmp_path / "b")
     assert c.run(resume=True).exit_code == 0
     assert a.steps == c.steps
-    for k, arr in a.state.arrays().items():
-        np.testing.assert_array_equal(arr, c.state.arrays()[k], err_msg=k)
+    for k, arr in a.engine.arrays().items():
+        np.testing.assert_array_equal(arr, c.engine.arrays()[k], err_msg=k)
     assert np.max(a.engine.points.gf) > 0.0
     import xarray as xr
 

@@ -1,7 +1,8 @@
 """The kernel cache cannot go stale (segmpm._cache): Numba keys its own cache by the file that
-defines a kernel, while segmpm's kernels inline functions of other modules. The fluidity update
-of ``mpm/fluidity.py`` inlines ``relax_local`` of ``materials/ngf.py``; editing ngf.py alone in a
-copy of the package must change what the cached ``fluidity_step`` computes.
+defines a kernel, while segmpm's kernels inline functions of other modules. The engine's
+fluidity update (generated from ``engine/kernels.py``) inlines ``relax_logistic`` of
+``materials/ngf.py``; editing ngf.py alone in a copy of the package must change what the cached
+``fluidity_step`` computes.
 """
 
 from __future__ import annotations
@@ -22,34 +23,34 @@ import numpy as np
 import segmpm
 from segmpm._cache import KERNEL_CACHE
 from segmpm.config import load_config
-from segmpm.mpm.fluidity import fluidity_step
-from segmpm.scenarios import build
+from segmpm.engine.codegen import kernels
+from segmpm.engine.setup import build
 
 assert segmpm.__file__.startswith(sys.argv[1]), segmpm.__file__
 cfg = load_config(preset="chute_seed", overrides=["material.rheology='nonlocal'", "material.q_phi=0.75",
                              "segregation.model='none'", "geometry.length=0.001",
                              "grid.cell_size=5e-4", "geometry.depth=0.01"])
-st = build(cfg)
-zeta = 0.01 - st.x[1]
+st = build(cfg, 2)
+P = st.points
+zeta = 0.01 - P.x[1]
 p = 0.6 * 2650 * 9.81 * np.cos(np.radians(26.0)) * zeta
-st.diag[0] = p
-st.sig[:] = 0.0
-st.sig[0] = st.sig[1] = st.sig[3] = -p
-st.sig[2] = 0.45 * p
-st.gf[:] = 5.0
-fluidity_step(st.x, st.mass, st.phi, st.sig, st.diag[0], st.gf, st.gp, st.mp, st.work["fw"],
-              2.5e-4)
-print(json.dumps({"gf": st.gf.tolist(), "cache": str(KERNEL_CACHE)}))
+P.diag[0] = p
+P.sig[:] = 0.0
+P.sig[0] = P.sig[1] = P.sig[2] = -p
+P.sig[3] = 0.45 * p
+P.gf[:] = 5.0
+kernels(2).fluidity_step(P, st.grid, st.prm, st.mat, 2.5e-4)
+print(json.dumps({"gf": P.gf.tolist(), "cache": str(KERNEL_CACHE)}))
 """
 
 EDIT = """
 
-_relax_local_before_the_edit = relax_local
+_relax_logistic_before_the_edit = relax_logistic
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def relax_local(g, mu, p, dbar, dt, prm):  # noqa: F811 - the edit under test
-    return 0.5 * _relax_local_before_the_edit(g, mu, p, dbar, dt, prm)
+def relax_logistic(g, mu, p, dbar, dt, rho_s, mu_s, t0, b, p_floor):  # noqa: F811 - the edit
+    return 0.5 * _relax_logistic_before_the_edit(g, mu, p, dbar, dt, rho_s, mu_s, t0, b, p_floor)
 """
 
 
@@ -64,7 +65,7 @@ def _run(pkg_root: Path, cache: Path) -> dict:
 def test_an_edited_inlined_kernel_is_not_run_from_a_stale_cache(tmp_path):
     pkg_root = tmp_path / "pkg"
     src = Path(segmpm.__file__).resolve().parent
-    # copy2 keeps the modification times: fluidity.py looks unchanged to Numba's own cache index
+    # copy2 keeps the modification times: the kernel files look unchanged to Numba's own cache index
     shutil.copytree(src, pkg_root / "segmpm", ignore=shutil.ignore_patterns("__pycache__"))
     cache = tmp_path / "cache"
     before = _run(pkg_root, cache)

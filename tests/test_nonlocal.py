@@ -24,6 +24,8 @@ from scipy.integrate import solve_ivp
 from segmpm.analysis.closed_form import bagnold_velocity, sidewall_velocity
 from segmpm.analysis.ngf_reference import NGFParameters, creep_length, h_stop, steady_chute
 from segmpm.config import load_config
+from segmpm.engine.codegen import kernels
+from segmpm.engine.setup import build
 from segmpm.materials import pack_material
 from segmpm.materials.ngf import (
     SEED_FRACTION,
@@ -34,8 +36,6 @@ from segmpm.materials.ngf import (
     return_factor_np,
 )
 from segmpm.materials.params import M_PFLOOR
-from segmpm.mpm.fluidity import fluidity_step, fluidity_step_np
-from segmpm.scenarios import build
 
 MU_S, B, A, D = 0.38, 0.5, 0.48, 2.5e-3
 NGF = ["material.rheology='nonlocal'", "material.q_phi=0.75", f"material.static_friction={MU_S}",
@@ -115,49 +115,41 @@ def test_steady_simple_shear_gives_the_flow_rule():
 
 # ------------------------------------------------------------------------ the fluidity operator
 def _chute_state(h, depth=0.02, extra=()):
+    """The engine's 2-D nonlocal chute with the stress of the steady sidewall chute imposed on
+    its points: p = ρ g cos θ ζ, τ/p = tan θ − μ_w ζ/W (engine tensor rows xx, yy, zz, xy)."""
     cfg = load_config(preset="chute_seed", overrides=[*NGF, f"geometry.length={2 * h}", f"grid.cell_size={h}",
                                  f"geometry.depth={depth}", "boundary.sidewall_friction=0.3",
                                  *extra])  # fmt: skip
-    st = build(cfg)
-    zeta = depth - st.x[1]
+    st = build(cfg, 2)
+    P = st.points
+    zeta = depth - P.x[1]
     th = math.radians(cfg.geometry.slope_deg)
     mu = math.tan(th) - 0.3 / 0.022 * zeta
     p = 0.6 * 2650 * 9.81 * math.cos(th) * zeta
-    st.diag[0] = p
-    st.sig[:] = 0.0
-    st.sig[0] = st.sig[1] = st.sig[3] = -p
-    st.sig[2] = mu * p
+    P.diag[0] = p
+    P.sig[:] = 0.0
+    P.sig[0] = P.sig[1] = P.sig[2] = -p
+    P.sig[3] = mu * p
     return cfg, st
-
-
-def test_fluidity_step_matches_numpy_twin(rng):
-    cfg, st = _chute_state(5e-4)
-    st.gf[:] = rng.uniform(0.0, 10.0, st.n)
-    st.gf[rng.uniform(size=st.n) < 0.1] = 0.0
-    st.phi[:] = rng.uniform(0, 1, st.n)
-    ref, nsub_ref = fluidity_step_np(st.x, st.mass, st.phi, st.sig, st.diag[0], st.gf.copy(),
-                                     st.gp, st.mp, 2.5e-4)  # fmt: skip
-    nsub = fluidity_step(st.x, st.mass, st.phi, st.sig, st.diag[0], st.gf, st.gp, st.mp,
-                         st.work["fw"], 2.5e-4)  # fmt: skip
-    assert nsub == nsub_ref and nsub >= 1
-    np.testing.assert_allclose(st.gf, ref, rtol=1e-11, atol=1e-12)
 
 
 @pytest.mark.parametrize("h", [1e-3, 5e-4, 2.5e-4])
 def test_fluidity_operator_reaches_the_steady_reference(h):
-    """With the stress of the steady sidewall chute imposed, repeated fluidity updates converge to
-    the steady 1-D solution: within 1.5 % where the layer flows (γ̇ > 5 % of the surface's) at
-    every resolution, and the profile within 3 % RMS over the whole depth."""
+    """With the stress of the steady sidewall chute imposed, repeated fluidity updates of the
+    engine converge to the steady 1-D solution (analysis.ngf_reference, a scipy solve): within
+    1.5 % where the layer flows (γ̇ > 5 % of the surface's) at every resolution, and the
+    profile within 3 % RMS over the whole depth."""
     cfg, st = _chute_state(h)
     ref = steady_chute(NGFParameters.from_config(cfg))
+    k = kernels(2)
+    P = st.points
     for _ in range(3000):  # 0.75 s, several diffusion times H²/(A² d̄²/t₀)
-        fluidity_step(st.x, st.mass, st.phi, st.sig, st.diag[0], st.gf, st.gp, st.mp,
-                      st.work["fw"], 2.5e-4)  # fmt: skip
-    y = st.x[1]
+        k.fluidity_step(P, st.grid, st.prm, st.mat, 2.5e-4)
+    y = P.x[1]
     gr = np.interp(y, ref["y"][::-1], ref["g"][::-1])
     flowing = np.interp(y, ref["y"][::-1], ref["gdot"][::-1]) > 0.05 * ref["gdot"][0]
-    assert np.max(np.abs(st.gf[flowing] / gr[flowing] - 1)) < 0.015
-    assert np.sqrt(np.mean((st.gf - gr) ** 2)) / gr.max() < 0.03
+    assert np.max(np.abs(P.gf[flowing] / gr[flowing] - 1)) < 0.015
+    assert np.sqrt(np.mean((P.gf - gr) ** 2)) / gr.max() < 0.03
 
 
 # -------------------------------------------------------------------------------- MPM flows
@@ -274,8 +266,8 @@ def test_nonlocal_checkpoint_resume_is_bit_identical(tmp_path):
     c = make_sim(over)
     c.load_checkpoint(tmp_path / "c.npz")
     c.advance_to(0.06)
-    for k, v in a.state.arrays().items():
-        np.testing.assert_array_equal(v, c.state.arrays()[k], err_msg=k)
+    for k, v in a.engine.arrays().items():
+        np.testing.assert_array_equal(v, c.engine.arrays()[k], err_msg=k)
     assert a.engine.points.gf.max() > 0
 
 

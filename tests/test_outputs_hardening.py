@@ -698,13 +698,17 @@ def test_compile_time_is_reported_apart(tmp_path, capsys, monkeypatch):
 
 
 def test_kernel_cache_detection(tmp_path, monkeypatch):
-    import numba
+    """A compiled time loop in the kernel cache is found by its generated file's stem and its
+    name (the MPM's ``advance`` apart from the column's ``advance_column``)."""
+    import segmpm._cache
 
-    monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path))
-    assert not simmod.kernel_cache_warm()
-    (tmp_path / "mpm_abc").mkdir()
-    (tmp_path / "mpm_abc" / "step.advance-393.py311.nbi").write_bytes(b"")
-    assert simmod.kernel_cache_warm()
+    monkeypatch.setattr(segmpm._cache, "KERNEL_CACHE", tmp_path)
+    assert not simmod.kernel_cache_warm("kernels_d2_law1", "advance")
+    (tmp_path / "gen_abc").mkdir()
+    (tmp_path / "gen_abc" / "kernels_d2_law1.advance-393.py311.nbi").write_bytes(b"")
+    assert simmod.kernel_cache_warm("kernels_d2_law1", "advance")
+    assert not simmod.kernel_cache_warm("kernels_d2_law1", "advance_column")
+    assert not simmod.kernel_cache_warm("kernels_d3_law1", "advance")
 
 
 def test_steps_per_call_and_eta():

@@ -183,7 +183,7 @@ def test_seed_strip_length_does_not_change_the_profiles():
             [f"geometry.length={cells * 0.0005}", "time.end=0.05", "segregation.dt=1e-4"]
         )
         sim.advance_to(0.05)
-        assert sim.state.n == cells * 2 * 149
+        assert sim.engine.n == cells * 2 * 149
         profiles.append(sim.profiles())
     a, b = profiles
     for key in ("velocity_x", "phi_small", "pressure", "shear_stress", "solid_fraction"):

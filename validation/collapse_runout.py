@@ -73,7 +73,7 @@ def run(a: float, H_CELL: float = H_CELL, base: str = "noslip", base_mu: float =
         "final_height": float(sim.engine.points.x[1].max()) / L0,
         "kinetic_energy_final_over_max": history[-1][2] / max(h[2] for h in history),
         "wall_s": time.perf_counter() - t0,
-        "n_points": sim.state.n,
+        "n_points": sim.engine.n,
     }
 
 

@@ -1,7 +1,8 @@
 """The sidewall question (docs/validation.md §4): is the 2-D Coulomb body force an adequate reduction
 of real sidewalls? Compares, on the seed chute (26°, 37.3 mm, walls 22 mm apart, μ_w = 0.3),
 
-* the 2-D model with the body force −(2 μ_w p / W) v/|v| (production engine),
+* the 2-D model with the body force −(2 μ_w p / W) v/|v| (run on the former plane-strain
+  engine until 2026-12-07; the engine gives the same 2-D results to round-off),
 * the 3-D model with two resolved Coulomb walls (generic engine, mirror plane at mid-width),
 * the DEM with real flat walls (validation/dem/cases/seed: width-resolved ``diag_yz.txt``, 1 mm ×
   1 mm cells across the channel and normal to the base, and the depth profiles),

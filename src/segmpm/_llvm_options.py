@@ -1,7 +1,7 @@
 """LLVM options for segmpm's compiled kernels, set when the time loop's module is imported (before
 any kernel compiles; Numba compiles on the first call).
 
-``-vectorize-memory-check-threshold``: the material pass (``mpm.step.update_stress``) reads and
+``-vectorize-memory-check-threshold``: the material pass (``update_stress`` of engine/kernels.py) reads and
 writes some twenty rows of the point arrays. LLVM cannot prove that rows of one array and distinct
 arrays do not overlap, so it vectorises such a loop behind run-time overlap checks, one pair of
 address comparisons per pair of accessed ranges and per block of points, and gives up above 128

@@ -29,15 +29,12 @@ from .bench_taichi import summarize
 from .io.atomic import write_json
 
 #: the variants ``segmpm bench --variants`` can time: the preset each one starts from and the
-#: overrides on it. ``local`` and ``nonlocal`` run on the former plane-strain engine
-#: (``grid.engine = "production"``); the ``generic-*`` variants are the same cases on the
-#: dimension-generic engine (``grid.engine = "generic"``, the default of ``segmpm run``), for the
-#: 2-D A/B of one engine against the other.
+#: overrides on it (the local default and the grain-calibrated nonlocal model). The former
+#: plane-strain engine's ``generic-*`` A/B variants went with that engine (2-D A/B against the
+#: commit before the generic engine: benchmarks/ab2d_identity.py).
 VARIANTS = {
-    "local": ("chute_seed", ("grid.engine='production'",)),
-    "nonlocal": ("chute_nonlocal", ("grid.engine='production'",)),
-    "generic-local": ("chute_seed", ("grid.engine='generic'",)),
-    "generic-nonlocal": ("chute_nonlocal", ("grid.engine='generic'",)),
+    "local": ("chute_seed", ()),
+    "nonlocal": ("chute_nonlocal", ()),
 }
 
 
@@ -136,7 +133,7 @@ def bench_size(
     from .simulation import Simulation
 
     sims = {v: Simulation(_config_for(n_points, v)) for v in variants}
-    n = sims[variants[0]].state.n
+    n = sims[variants[0]].engine.n
     first: dict[tuple[str, int], float] = {}
     for v, sim in sims.items():
         for t in threads:
@@ -287,7 +284,7 @@ def bench_contended(sizes: list[int], threads: list[int], steps: int, repeats: i
     rows = []
     for n_req in sizes:
         sim = Simulation(_config_for(n_req))
-        n = sim.state.n
+        n = sim.engine.n
         st = max(steps, int(4e6 / max(n, 1)))  # blocks of ≥ 4e6 particle-steps
         for t in threads:
             sim.threads = t

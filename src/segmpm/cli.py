@@ -113,8 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-peer", action="store_true", help="skip the Taichi mpm88 peer")
     p.add_argument("--variants", nargs="+", default=["local"], choices=BENCH_VARIANTS,
                    help="models timed, interleaved (the first is the reference of the cost "
-                   "ratio): the local default and the grain-calibrated nonlocal model; generic-*: "
-                   "the same on the dimension-generic engine")  # fmt: skip
+                   "ratio): the local default and the grain-calibrated nonlocal model")  # fmt: skip
     p.add_argument("--contended", action="store_true",
                    help="the step idle and beside a busy process, and the default run alone, "
                    "beside it and two at once (default sizes: 596 and 32000)")  # fmt: skip
@@ -123,7 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 #: ``segmpm bench --variants`` (segmpm.bench.VARIANTS; listed here so that the parser does not
 #: import the compiled kernels)
-BENCH_VARIANTS = ["local", "nonlocal", "generic-local", "generic-nonlocal"]
+BENCH_VARIANTS = ["local", "nonlocal"]
 
 
 def _fail(msg: str) -> int:
@@ -352,7 +351,7 @@ def _run(args: argparse.Namespace) -> int:
             sim = Simulation(cfg, out_dir=out)  # generates and compiles (or loads) the kernels
         except OSError as err:
             return _cache_write_failure(err)
-        print(f"segmpm {__version__}: {cfg.scenario.kind}, {sim.state.n} material points, "
+        print(f"segmpm {__version__}: {cfg.scenario.kind}, {sim.engine.n} material points, "
               f"t_end = {cfg.time.end:g} s, {sim.threads} thread(s) ({sim.threads_reason}) → {out}",
               file=sys.stderr)  # fmt: skip
         sim.announce = True  # the estimated steps and wall time, after the first steps

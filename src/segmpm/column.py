@@ -2,17 +2,20 @@
 
 ``scenario.solver = "column"`` replaces the 2-D MPM by a 1-D updated-Lagrangian finite-element
 column for layers whose fields depend on the depth coordinate y alone (docs/column.md). The
-physics is not copied: every element calls the MPM's own kernels,
+compiled column is the engine's (``engine/kernels.py``, ``advance_column``); this module holds
+its element layout, its bulk-viscosity floor and the plain NumPy reference of one of its steps
+(``column_step_np``, in the layout of segmpm.state, which tests/test_column.py translates the
+engine's records into). The physics is not copied: every element calls the MPM's own kernels,
 
-* the constitutive law, ``materials.material_update_var`` (Jiang–Liu elasticity, the yield cap,
+* the constitutive law, the engine's material pass (Jiang–Liu elasticity, the yield cap,
   μ(I) or the nonlocal flow rule, the gas state), with the velocity gradient L = [[0, ∂u/∂y],
   [0, ∂v/∂y]];
-* the sidewall Coulomb body force with its speed-dependent μ_w(u), ``mpm.boundary.sidewall_drag``,
-  and the base condition, ``mpm.boundary.apply_bc``;
-* the nonlocal fluidity update, ``mpm.fluidity.fluidity_step``, on a one-node-wide periodic
+* the sidewall Coulomb body force with its speed-dependent μ_w(u), ``engine.helpers.sidewall_drag``,
+  and the base condition of the MPM grid update;
+* the nonlocal fluidity update, the engine's fluidity step, on a one-node-wide periodic
   grid of the MPM's cell size (its nodal diffusion, cut-cell free surface, Dirichlet base and
   local relaxation unchanged);
-* the segregation transport, ``segregation.grid.concentration_step``, on a one-cell-wide
+* the segregation transport, the engine's concentration step, on a one-cell-wide
   periodic concentration grid of the MPM's concentration-cell size, the elements acting as its
   material points (the conservative, bound-preserving mapping unchanged).
 
@@ -31,40 +34,24 @@ unstable on the Bagnold layer at C = 0.9), with C_ν the MPM's viscous number an
 at least ``COLUMN_BULK_VISCOSITY`` (the column has no transfer dissipation to damp its
 compression modes).
 
-State: the elements are the ``State``'s points (x: (h_c/2, element centre), v: the mean of the
-element's nodes, and the point arrays of the MPM); the nodes (``State.nodes``, rows ``COL_*``)
+State: the elements are the engine's points (x: (h_c/2, element centre), v: the mean of the
+element's nodes, and the point arrays of the MPM); the nodes (rows ``engine.records.COL_*``)
 carry position, velocity and lumped mass; both are in checkpoints.
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
-from numba import njit, prange
 
-from . import _llvm_options  # noqa: F401  (before any kernel of the loop compiles)
 from .config import Config
 from .engine.records import COL_M, COL_ROWS, COL_U, COL_V, COL_Y
-from .materials import (
-    VAR_ELASTIC,
-    VAR_FEI_LINEAR,
-    VAR_FEI_POWER,
-    VAR_NGF,
-    material_update_var,
-    material_variant,
-)
 from .materials.params import M_FLU_DT, M_ZETA
-from .mpm.boundary import apply_bc, sidewall_drag
-from .mpm.fluidity import fluidity_step
 from .mpm.params import (
     G_CFL,
     G_CFLOOR,
     G_DTMAX,
-    G_DTMIN,
     G_GX,
     G_GY,
-    G_H,
     G_LX,
     G_NY,
     G_RAMP,
@@ -75,20 +62,13 @@ from .mpm.params import (
     G_Y0,
     S_DT,
     S_NFLU,
-    S_NSEG,
     S_NUMAX,
     S_SMAX,
     S_STEP,
     S_TFLU,
     S_TIME,
     S_TSEG,
-    ST_DT_COLLAPSE,
-    ST_LEFT_GRID,
-    ST_NONFINITE,
-    ST_OK,
 )
-from .segregation.closures import P_DT_TARGET, P_MODEL
-from .segregation.grid import concentration_step
 from .state import State
 
 #: the column's floor on ``material.bulk_viscosity`` (ζ_b as a fraction of ρ c h): the column has
@@ -96,202 +76,6 @@ from .state import State
 #: (on the nonlocal seed case within 0.1 s at any Courant number), throwing the top of the layer
 #: into the gas state (docs/column.md); 0.05 ρ c h, i.e. 0.1 ρ c Δy, damps them
 COLUMN_BULK_VISCOSITY = 0.05
-
-#: rows of the node record ``State.nodes`` (COL_ROWS, N + 1): ``engine.records.COL_*``, shared
-#: with the generic engine's column (position y, velocities u and v, lumped mass per metre of z)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _elements(var, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp):
-    """The material update of every element from the new nodal velocities (variant ``var``, a
-    constant once inlined): strain, stress, diagnostics (``diag`` rows 0–5, the signal speed
-    c + |v| in row 4) and the segregation integrals. A loop without calls or reductions over
-    unsigned indices, so that it vectorises like the MPM's material pass; ``_check`` reduces."""
-    for u in range(np.uint64(J.shape[0])):
-        dy = nodes[COL_Y, u + 1] - nodes[COL_Y, u]
-        u0 = nodes[COL_U, u]
-        u1 = nodes[COL_U, u + 1]
-        w0 = nodes[COL_V, u]
-        w1 = nodes[COL_V, u + 1]
-        l01 = (u1 - u0) / dy
-        l11 = (w1 - w0) / dy
-        Jn = J[u] * (1.0 + dt * l11)
-        J[u] = Jn
-        r = material_update_var(var, mp, 0.0, l01, 0.0, l11, dt, eps[0, u], eps[1, u],
-                                eps[2, u], eps[3, u], Jn, phi[u], gf[u])  # fmt: skip
-        eps[0, u] = r[0]
-        eps[1, u] = r[1]
-        eps[2, u] = r[2]
-        eps[3, u] = r[3]
-        sig[0, u] = r[4]
-        sig[1, u] = r[5]
-        sig[2, u] = r[6]
-        sig[3, u] = r[7]
-        diag[0, u] = r[8]
-        diag[1, u] = r[9]
-        diag[2, u] = r[10]
-        diag[3, u] = r[11]
-        s_int[u] += r[11] * dt
-        g_int[u] += r[9] * dt
-        ve = 0.5 * (u0 + u1)
-        we = 0.5 * (w0 + w1)
-        v[0, u] = ve
-        v[1, u] = we
-        diag[4, u] = r[12] + math.sqrt(ve * ve + we * we)
-        diag[5, u] = r[13]
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _check(J, sig, diag):
-    """(max c + |v|, max ν, first element whose signal speed or stress is not finite or whose
-    J ≤ 0, else −1)."""
-    smax = 0.0
-    numax = 0.0
-    bad = -1
-    for e in range(J.shape[0]):
-        s = diag[4, e]
-        smax = max(smax, s)
-        numax = max(numax, diag[5, e])
-        if bad < 0 and not (
-            math.isfinite(s)
-            and math.isfinite(sig[0, e] + sig[1, e] + sig[2, e] + sig[3, e])
-            and J[e] > 0.0
-        ):
-            bad = e
-    return smax, numax, bad
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def node_velocity(j, fx, fy, vp, nodes, dt, gx, gy, sw, sw0, uw, lx):
-    """The new velocity of node j from its net internal force per unit width (fx, fy), gravity
-    and the sidewall force on vp = Σ V p of its half elements."""
-    im = 1.0 / nodes[COL_M, j]
-    u = nodes[COL_U, j] + dt * (lx * fx * im + gx)
-    w = nodes[COL_V, j] + dt * (lx * fy * im + gy)
-    if (sw > 0.0 or sw0 > 0.0) and vp > 0.0:
-        u, w = sidewall_drag(u, w, sw, sw0, uw, dt, vp, im)
-    nodes[COL_U, j] = u
-    nodes[COL_V, j] = w
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _nodes(nodes, sig, vol0, J, pres, gp, dt, ramp, lx):
-    """Nodal velocities over one step: internal force lx (σ_above − σ_below) (zero traction
-    above the top node), gravity, the sidewall force on Σ V p of the node's half elements; then
-    the base condition on node 0, the only node on the base plane. The interior nodes run as a
-    loop without calls (unsigned indices), so that it vectorises."""
-    ne = nodes.shape[1] - 1
-    gx = gp[G_GX] * ramp
-    gy = gp[G_GY]
-    sw = gp[G_SIDEWALL] * ramp
-    uw = gp[G_SW_SPEED]
-    sw0 = gp[G_SW_SLOW] * ramp if uw > 0.0 else sw
-    for k in range(np.uint64(ne - 1)):
-        j = k + np.uint64(1)
-        b = k
-        fx = sig[2, j] - sig[2, b]
-        fy = sig[1, j] - sig[1, b]
-        vp = 0.5 * vol0[j] * J[j] * pres[j] + 0.5 * vol0[b] * J[b] * pres[b]
-        node_velocity(j, fx, fy, vp, nodes, dt, gx, gy, sw, sw0, uw, lx)
-    # the top node (the free surface: only the element below) and the base node
-    b = ne - 1
-    node_velocity(ne, -sig[2, b], -sig[1, b], 0.5 * vol0[b] * J[b] * pres[b], nodes, dt, gx, gy, sw, sw0,
-          uw, lx)  # fmt: skip
-    node_velocity(0, sig[2, 0], sig[1, 0], 0.5 * vol0[0] * J[0] * pres[0], nodes, dt, gx, gy, sw, sw0,
-          uw, lx)  # fmt: skip
-    nodes[COL_U, 0], nodes[COL_V, 0] = apply_bc(gp, 0.5 * lx, nodes[COL_Y, 0], nodes[COL_U, 0],
-                                                nodes[COL_V, 0])  # fmt: skip
-
-
-@njit(cache=True, error_model="numpy", parallel=True, fastmath={"contract"})
-def advance_column(x, v, mass, vol0, J, eps, sig, phi, gf, diag, s_int, g_int, nodes, seg_vol,
-                   gp, mp, sc, fw, seg_prm, cg, seg_work, t_stop, max_steps):  # fmt: skip
-    """Advance the column to ``t_stop`` (exactly) or by ``max_steps`` steps (the contract of
-    ``mpm.step.advance``): returns (status, element index, steps taken). ``seg_vol``: the
-    elements' reference volumes on the concentration grid's one-cell width."""
-    n = J.shape[0]
-    lx = gp[G_LX]
-    var = material_variant(mp)
-    nonlocal_on = var == VAR_NGF
-    y_max = gp[G_Y0] + (gp[G_NY] - 1.5) * gp[G_H]
-    steps = 0
-    while steps < max_steps and sc[S_TIME] < t_stop:
-        t = sc[S_TIME]
-        dymin = math.inf
-        for e in range(n):
-            dymin = min(dymin, nodes[COL_Y, e + 1] - nodes[COL_Y, e])
-        dt = gp[G_DTMAX]
-        smax = max(sc[S_SMAX], gp[G_CFLOOR])
-        # the combined wave and diffusion bound of the explicit 1-D scheme (each limit alone was
-        # unstable together with the other: docs/column.md)
-        rate = smax + 2.0 * sc[S_NUMAX] / dymin
-        if rate > 0.0:
-            dt = min(dt, gp[G_CFL] * dymin / rate)
-        if sc[S_NUMAX] > 0.0:
-            dt = min(dt, gp[G_VISC] * dymin * dymin / (2.0 * sc[S_NUMAX]))
-        if not (dt >= gp[G_DTMIN]):
-            return ST_DT_COLLAPSE, -1, steps
-        if t + dt * 1.000001 >= t_stop:
-            dt = t_stop - t
-        ramp = 1.0
-        if gp[G_RAMP] > 0.0:
-            ramp = min(1.0, (t + dt) / gp[G_RAMP])
-
-        # each pass is a one-block parallel region: Numba's parallel lowering hands the arrays to
-        # the region as distinct arguments, and only then does LLVM vectorise the loops (the
-        # material pass 3× faster than the same loop inline: docs/column.md)
-        for _ in prange(1):
-            _nodes(nodes, sig, vol0, J, diag[0], gp, dt, ramp, lx)
-        for _ in prange(1):
-            if var == VAR_FEI_LINEAR:
-                _elements(VAR_FEI_LINEAR, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int,
-                          mp)  # fmt: skip
-            elif var == VAR_NGF:
-                _elements(VAR_NGF, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp)
-            elif var == VAR_FEI_POWER:
-                _elements(VAR_FEI_POWER, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int,
-                          mp)  # fmt: skip
-            else:
-                _elements(VAR_ELASTIC, dt, nodes, v, J, eps, sig, phi, gf, diag, s_int, g_int, mp)
-        smax, numax, bad = _check(J, sig, diag)
-        # separate passes, each vectorisable (fused, the position update carries a dependence
-        # from element to element and the step was slower)
-        for j in range(n + 1):
-            nodes[COL_Y, j] += dt * nodes[COL_V, j]
-        for e in range(n):
-            x[1, e] = 0.5 * (nodes[COL_Y, e] + nodes[COL_Y, e + 1])
-
-        sc[S_TIME] = t + dt
-        sc[S_STEP] += 1.0
-        sc[S_DT] = dt
-        sc[S_TSEG] += dt
-        steps += 1
-        sc[S_SMAX] = smax
-        sc[S_NUMAX] = numax
-        if bad >= 0:
-            return ST_NONFINITE, bad, steps
-        if not (nodes[COL_Y, n] < y_max):
-            return (ST_LEFT_GRID if math.isfinite(nodes[COL_Y, n]) else ST_NONFINITE), n - 1, steps
-        if nonlocal_on:
-            sc[S_TFLU] += dt
-            if sc[S_TFLU] >= mp[M_FLU_DT] * (1.0 - 1e-12):
-                fluidity_step(x, mass, phi, sig, diag[0], gf, gp, mp, fw, sc[S_TFLU])
-                sc[S_TFLU] = 0.0
-                sc[S_NFLU] += 1.0
-        if sc[S_TSEG] >= seg_prm[P_DT_TARGET] * (1.0 - 1e-12):
-            if seg_prm[P_MODEL] != 0.0:
-                concentration_step(x[0], x[1], seg_vol, phi, s_int, g_int, sc[S_TSEG], cg,
-                                   seg_prm, seg_work)  # fmt: skip
-                sc[S_NSEG] += 1.0
-            else:
-                s_int[:] = 0.0
-                g_int[:] = 0.0
-            sc[S_TSEG] = 0.0
-    return ST_OK, -1, steps
-
-
-# ---------------------------------------------------------------------------------------------
-# set-up
 
 
 def column_elements(cfg: Config) -> tuple[np.ndarray, np.ndarray]:
@@ -304,7 +88,8 @@ def column_elements(cfg: Config) -> tuple[np.ndarray, np.ndarray]:
 
 
 def build_column(cfg: Config) -> State:
-    """The column of a chute configuration: elements of the MPM's point spacing h/n_ppc over the
+    """The column of a chute configuration in the layout of ``column_step_np`` (the engine's
+    own set-up is ``engine.setup.build_column``): elements of the MPM's point spacing h/n_ppc over the
     depth H (round(H n_ppc/h) of them), nodes from the base (y = 0) to the free surface, the geostatic
     initial state of the MPM builder, a one-node-wide periodic fluidity grid of cell h and a
     one-cell-wide periodic concentration grid; ``gp[G_CFL]`` holds the column's Courant
@@ -341,8 +126,6 @@ def build_column(cfg: Config) -> State:
     gp[G_CFL] = cfg.time.column_courant
     st.cg = make_conc_grid(0.0, hc, 0.0, gp[G_Y0] + (gp[G_NY] - 1) * h, hc, True)
     st.seg_prm = pack_params(cfg, (gp[G_GX], gp[G_GY]))
-    st.allocate_work()
-    st.work["seg_vol"] = vol0 * (hc / lx)
     return st
 
 
@@ -352,7 +135,7 @@ def build_column(cfg: Config) -> State:
 
 def column_step_np(arrays: dict[str, np.ndarray], gp: np.ndarray, mp: np.ndarray,
                    ) -> dict[str, np.ndarray]:  # fmt: skip
-    """One step of :func:`advance_column` on copies of the state arrays, written with arrays and
+    """One step of the engine's column (``advance_column``) on copies of the state arrays, written with arrays and
     the NumPy twins of the shared kernels (material law, base condition, fluidity update);
     returns the new arrays. The segregation subcycle is not taken (its twin is tested on its
     own, ``segregation.reference``)."""
@@ -433,7 +216,6 @@ __all__ = [
     "COL_U",
     "COL_V",
     "COL_Y",
-    "advance_column",
     "build_column",
     "column_step_np",
 ]

@@ -93,11 +93,22 @@ class GridConfig(_Section):
     #: "Volumetric smoothing"). "auto": on for the nonlocal rheology in 3-D, where it was shown
     #: to help, else off; "on" needs geometry.dimension = 3.
     volumetric_smoothing: Literal["auto", "on", "off"] = "auto"
-    #: the MPM engine: "auto" and "generic" (the default): the dimension-generic engine,
-    #: segmpm.engine, in 2-D and 3-D (the column solver included); "production": the former
-    #: 2-D plane-strain engine, segmpm.mpm, kept for the A/B against the generic one until it is
-    #: removed (2-D only; docs/architecture.md, "One engine: where 2-D stands").
-    engine: Literal["auto", "generic", "production"] = "auto"
+    #: the MPM engine: "auto" and "generic" (the same: the dimension-generic engine,
+    #: segmpm.engine, in 2-D and 3-D, the column solver included). The former plane-strain
+    #: engine ("production") was removed on 2026-12-07 (docs/architecture.md, "One engine").
+    engine: Literal["auto", "generic"] = "auto"
+
+    @model_validator(mode="before")
+    @classmethod
+    def _removed_engine(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("engine") == "production":
+            raise ValueError(
+                "grid.engine = 'production' (the former plane-strain engine) was removed on "
+                "2026-12-07: every run is on the dimension-generic engine, which gives its 2-D "
+                "results to round-off; allowed: 'auto', 'generic'"
+            )
+        return data
+
     #: threads of the compiled loop: "auto" (one below 20 000 points, else the cores this process
     #: may use that no other process keeps busy; segmpm.threads) or a count (0 = numba's pool).
     #: Results do not depend on it.
@@ -417,9 +428,6 @@ class Config(_Section):
         if g.dimension == 3:
             self._check_3d()
         else:
-            if self.grid.engine != "production":
-                self._check_generic("the dimension-generic engine (grid.engine = "
-                                    f"{self.grid.engine!r}) in 2-D")  # fmt: skip
             if self.grid.volumetric_smoothing == "on":
                 raise ValueError(
                     "grid.volumetric_smoothing = 'on' needs geometry.dimension = 3 (it is "
@@ -432,7 +440,7 @@ class Config(_Section):
         return self
 
     def _check_generic(self, what: str) -> None:
-        """What the dimension-generic engine supports today (docs/architecture.md)."""
+        """What the engine supports in 3-D today (docs/architecture.md)."""
         need = {
             "scenario.kind": (self.scenario.kind, ("chute", "collapse", "box", "bar")),
             # the column is an x-uniform 2-D layer (a 3-D one would be the same column)
@@ -453,11 +461,6 @@ class Config(_Section):
         """What the 3-D engine supports today (docs/architecture.md, "Status")."""
         g = self.geometry
         h = self.grid.cell_size
-        if self.grid.engine == "production":
-            raise ValueError(
-                "grid.engine = 'production' (the former plane-strain engine) needs "
-                "geometry.dimension = 2; allowed in 3-D: 'auto', 'generic'"
-            )
         self._check_generic("geometry.dimension = 3")
         if self.scenario.kind == "chute":
             wm = g.width / 2 if g.mirror else g.width

@@ -1,7 +1,17 @@
-"""Simulation: builds the state from a configuration, runs the compiled loop in chunks, and calls
-the output writers (profiles, VTK, checkpoints, figures, run.json) between chunks.
+"""Simulation: builds the engine's state from a configuration (segmpm.engine.setup), runs its
+compiled loop in chunks, and calls the output writers (profiles, VTK, checkpoints, figures,
+run.json) between chunks: chunked calls, outputs at the profile times, atomic checkpoints at
+k·Δt, resume, signals, exit codes. One controller for 2-D and 3-D, the MPM and the column.
 
 Python never loops over material points; it only decides when the compiled ``advance`` stops.
+Outputs of a 3-D run in OUT_DIR, besides run.json, config.toml and checkpoint/:
+
+* ``profiles.nc`` – depth profiles averaged over the length and the (modelled) width;
+* ``cross_section.nc`` – maps across the channel, (time, y, z): ``velocity_x``, ``phi_small``,
+  ``solid_fraction``, ``pressure``, ``shear_rate``, ``fluidity`` on cells of ``output.profile_bin`` in y and
+  one grid cell in z, averaged along x;
+* ``fields/`` – the points with their 3-D positions (VTK ``.vtu`` + ``.pvd``);
+* ``figures/`` – the depth profiles and the cross-channel maps.
 """
 
 from __future__ import annotations
@@ -17,38 +27,17 @@ from typing import Any
 
 import numba
 import numpy as np
+import xarray as xr
 
 from . import __version__
-from .analysis.profiles import bin_edges, depth_profiles
+from .analysis.profiles import bin_edges
 from .config import Config, load_config
+from .engine.codegen import for_material
+from .engine.records import D_DRIVER, D_INERTIAL, D_PRESSURE, D_SHEAR_RATE, XY, YY, YZ
+from .engine.setup import EngineState, build, prime_clock
 from .io.atomic import write_json, write_text
 from .io.checkpoint import load_checkpoint, save_checkpoint
-from .mpm.params import (
-    G_CFL,
-    G_CFLOOR,
-    G_DTMAX,
-    G_DTMIN,
-    G_GX,
-    G_GY,
-    G_H,
-    G_LX,
-    G_NY,
-    G_VISC,
-    G_Y0,
-    S_DT,
-    S_NFLU,
-    S_NSEG,
-    S_NUMAX,
-    S_SMAX,
-    S_STEP,
-    S_TIME,
-    ST_DT_COLLAPSE,
-    ST_OK,
-    STATUS_TEXT,
-)
-from .mpm.step import advance, prime
-from .scenarios import build
-from .state import D_SPEED, STATE_ARRAYS, State
+from .mpm.params import ST_DT_COLLAPSE, ST_OK, STATUS_TEXT
 from .threads import threading_layer
 
 EXIT_OK = 0
@@ -76,27 +65,16 @@ def _steps_per_call(current: int, steps: int, seconds: float, limit: int) -> int
     return max(1, min(limit, want, 8 * max(current, steps)))
 
 
-def kernel_cache_warm(loop: str = "step.advance") -> bool:
-    """True when Numba's on-disk cache holds the compiled time loop ``loop`` (the MPM's
-    ``step.advance`` or the column's ``column.advance_column``), i.e. the first call of this
-    process loads it instead of compiling it."""
-    from .mpm import step as _step
+def kernel_cache_warm(stem: str, loop: str) -> bool:
+    """True when the kernel cache (``segmpm._cache.KERNEL_CACHE``) holds the compiled time loop
+    ``loop`` (``advance`` or ``advance_column``) of the generated kernel file ``stem``, i.e. the
+    first call of this process loads it instead of compiling it."""
+    from ._cache import KERNEL_CACHE
 
-    root = numba.config.CACHE_DIR
-    folder = Path(root) if root else Path(_step.__file__).parent / "__pycache__"
     try:
-        return any(folder.rglob(f"{loop}-*.nbi"))
+        return any(KERNEL_CACHE.rglob(f"{stem}.{loop}-*.nbi"))
     except OSError:
         return False
-
-
-def _bounds(work: dict[str, np.ndarray]) -> np.ndarray:
-    """P2G's per-thread strip-run bounds, sized for the current Numba thread count."""
-    nt = numba.get_num_threads()
-    b = work.get("bounds")
-    if b is None or b.shape[0] != nt + 1:
-        b = work["bounds"] = np.zeros(nt + 1, dtype=np.int64)
-    return b
 
 
 class SimulationError(RuntimeError):
@@ -116,36 +94,47 @@ class RunResult:
     info: dict[str, Any] = field(default_factory=dict)
 
 
+CROSS_VARIABLES = {
+    "velocity_x": ("m s-1", "downslope velocity u, averaged along x"),
+    "phi_small": ("1", "small-grain volume fraction of the solid φ_s"),
+    "solid_fraction": ("1", "solid volume fraction f"),
+    "pressure": ("Pa", "elastic pressure p_e"),
+    "shear_rate": ("s-1", "shear rate γ̇"),
+    "fluidity": ("s-1", "granular fluidity g: the nonlocal state g, or γ̇/μ of a local run"),
+}
+
+
+def stress_ratio(sig: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """μ = √(½ s:s)/p_e of stresses (NE, N) in the engine's order (0 where p_e ≤ 0)."""
+    tr = (sig[0] + sig[1] + sig[2]) / 3.0
+    s2 = sum((sig[a] - tr) ** 2 for a in range(3)) + 2.0 * sum(sig[a] ** 2 for a in
+                                                                range(3, sig.shape[0]))  # fmt: skip
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(p > 0, np.sqrt(0.5 * s2) / np.where(p > 0, p, 1.0), 0.0)
+
+
 class Simulation:
-    """A run of one configuration.
+    """A run of one configuration on the engine (2-D or 3-D, the MPM or the column model).
 
     >>> sim = Simulation(load_config(overrides=["time.end=0.01", "output.fields=false"]))
     >>> sim.advance_to(0.001)          # doctest: +SKIP
     >>> sim.profiles()["velocity_x"]   # doctest: +SKIP
     """
 
-    def __new__(cls, config: Config | None = None, out_dir: str | Path | None = None):
-        """Every run but ``grid.engine = "production"`` (2-D only) is on the dimension-generic
-        engine (:class:`segmpm.engine.simulation.EngineSimulation`, the same controller)."""
-        generic = config is None or config.grid.engine != "production"
-        if cls is Simulation and generic:
-            from .engine.simulation import EngineSimulation
-
-            return super().__new__(EngineSimulation)
-        return super().__new__(cls)
-
     def __init__(self, config: Config | None = None, out_dir: str | Path | None = None):
-        self.config = config if config is not None else load_config()
-        self.out_dir = Path(out_dir if out_dir is not None else self.config.output.dir)
-        self.state: State = build(self.config)
         from . import threads as _threads
 
-        #: thread count of the compiled loop and why (``grid.threads``; segmpm.threads)
-        self.threads, self.threads_reason = _threads.resolve(self.config.grid.threads,
-                                                             self.state.n)  # fmt: skip
+        self.config = config if config is not None else load_config()
+        self.out_dir = Path(out_dir if out_dir is not None else self.config.output.dir)
+        self.dim = int(self.config.geometry.dimension)
+        n_est = build_count(self.config)
+        self.threads, self.threads_reason = _threads.resolve(self.config.grid.threads, n_est)
+        #: points, grid and records of the run (segmpm.engine.setup), and its compiled kernels
+        self.engine: EngineState = build(self.config, self.dim, threads=self.threads)
+        self.kernels = for_material(self.dim, self.engine.mat)
         self._initial = self._invariants()
-        self._primed = False
         self._failed: tuple[int, int] | None = None
+        #: seconds in the compiled loop (run.json ``wall_time_s``)
         self.wall_time = 0.0
         #: seconds spent compiling (or loading) the kernels in this process's run, not part of
         #: ``wall_time`` (run.json ``compile_s``)
@@ -155,29 +144,39 @@ class Simulation:
         #: print the estimated number of steps and wall time after the first call (the CLI sets it)
         self.announce = False
         self._ckpt_time: float | None = None  # time of the last checkpoint written or loaded
-        grid_top = self.state.gp[G_Y0] + (self.state.gp[G_NY] - 1) * self.state.gp[G_H]
+        prm = self.engine.prm[0]
+        grid_top = prm["origin"][1] + (prm["nodes"][1] - 1) * prm["h"]
         self.edges = bin_edges(grid_top, self.config.output.profile_bin)
+        self._cross: list[tuple[float, dict[str, np.ndarray]]] = []
 
     # --------------------------------------------------------------------------- stepping
     @property
+    def clock(self) -> np.void:
+        """The CLOCK record (time, step, Δt, the subcycle clocks, the last step's maxima)."""
+        return self.engine.clock[0]
+
+    @property
     def time(self) -> float:
         """Simulated time t, s."""
-        return float(self.state.sc[S_TIME])
+        return float(self.clock["time"])
 
     @property
     def steps(self) -> int:
         """Time steps taken."""
-        return int(self.state.sc[S_STEP])
+        return int(self.clock["step"])
 
-    def _prime(self) -> None:
-        if self._primed:
-            return
-        st = self.state
-        if st.sc[S_STEP] == 0:
-            prime(st.J, st.eps, st.sig, st.phi, st.gf, st.diag, st.mp, st.v)
-            st.sc[S_SMAX] = float(np.max(st.diag[D_SPEED])) if st.n else 0.0
-            st.sc[S_NUMAX] = float(np.max(st.diag[5])) if st.n else 0.0
-        self._primed = True
+    def prime(self) -> None:
+        """Derive the initial state again from points edited before the first step (a launched,
+        pre-compacted or pre-sheared layer): the stress σ(ε^e, J), the diagnostics (p_e, γ̇, I,
+        S, c + |v|, ν) and the first step's time-step bound from them. Raises
+        RuntimeError once the run has stepped (its state is then the loop's)."""
+        if self.steps:
+            raise RuntimeError(f"prime() derives the initial state; the run has already taken "
+                               f"{self.steps} steps")  # fmt: skip
+        e = self.engine
+        self.kernels.prime(e.points, e.mat)
+        prime_clock(e)
+        self._initial = self._invariants()
 
     def advance(self, t_stop: float, max_steps: int) -> tuple[int, int, int]:
         """One call of the compiled loop; returns (status, point index, steps taken).
@@ -199,24 +198,20 @@ class Simulation:
             return self._advance_locked(t_stop, max_steps)
 
     def _advance_locked(self, t_stop: float, max_steps: int) -> tuple[int, int, int]:
-        self._prime()
-        st, w = self.state, self.state.work
+        e = self.engine
+        numba.set_num_threads(self.threads)
+        if e.grid.bounds.shape[0] != self.threads + 1:
+            # P2G's per-thread slab runs, sized for the thread count of this call (it may have
+            # been changed since set-up, as the bench does): results do not depend on it
+            e.grid = e.grid._replace(bounds=np.zeros(self.threads + 1, dtype=np.int64))
         t0 = _time.perf_counter()
-        if st.nodes is not None:
-            from .column import advance_column
-
-            status, idx, n = advance_column(
-                st.x, st.v, st.mass, st.vol0, st.J, st.eps, st.sig, st.phi, st.gf, st.diag,
-                st.s_int, st.g_int, st.nodes, w["seg_vol"], st.gp, st.mp, st.sc, w["fw"],
-                st.seg_prm, st.cg, st.seg_work, float(t_stop), int(max_steps),
-            )  # fmt: skip
+        if e.nodes is not None:  # the column model
+            status, idx, n = self.kernels.advance_column(
+                e.points, e.seg_points, e.nodes, e.grid, e.prm, e.mat, e.clock, e.seg,
+                float(t_stop), int(max_steps))  # fmt: skip
         else:
-            status, idx, n = advance(
-                st.x, st.v, st.C, st.mass, st.vol0, st.J, st.eps, st.sig, st.phi, st.gf,
-                st.diag, st.s_int, st.g_int, st.gp, st.mp, st.sc, w["grid"], w["gv"],
-                w["strip_start"], w["cursor"], w["order"], _bounds(w), w["flags"], w["x_old"],
-                w["lg"], w["fw"], st.seg_prm, st.cg, st.seg_work, float(t_stop), int(max_steps),
-            )  # fmt: skip
+            status, idx, n = self.kernels.advance(e.points, e.grid, e.prm, e.mat, e.clock, e.seg,
+                                                  float(t_stop), int(max_steps))  # fmt: skip
         self.wall_time += _time.perf_counter() - t0
         if status != ST_OK:
             self._failed = (int(status), int(idx))
@@ -234,108 +229,196 @@ class Simulation:
             if self._interrupt is not None:
                 return
 
+    # --------------------------------------------------------------------------- diagnostics
     def _diagnostic(self, status: int, idx: int) -> dict[str, Any]:
-        st = self.state
-        d: dict[str, Any] = {
-            "reason": STATUS_TEXT.get(status, str(status)),
-            "time": self.time,
-            "step": self.steps,
-            "dt": float(st.sc[S_DT]),
-        }
+        P = self.engine.points
+        c = self.clock
+        d: dict[str, Any] = {"reason": STATUS_TEXT.get(status, str(status)), "time": self.time,
+                             "step": self.steps, "dt": float(c["dt"])}  # fmt: skip
         if idx >= 0:
             d["point"] = int(idx)
-            d["position"] = [float(st.x[0, idx]), float(st.x[1, idx])]
-            d["velocity"] = [float(st.v[0, idx]), float(st.v[1, idx])]
-            d["stress"] = [float(s) for s in st.sig[:, idx]]
-            d["J"] = float(st.J[idx])
-            bad = [
-                name
-                for name, arr in (("position", st.x[:, idx]), ("velocity", st.v[:, idx]),
-                                  ("stress", st.sig[:, idx]), ("J", st.J[idx : idx + 1]))
-                if not np.all(np.isfinite(arr))
-            ]  # fmt: skip
+            d["position"] = [float(v) for v in P.x[:, idx]]
+            d["velocity"] = [float(v) for v in P.v[:, idx]]
+            d["stress"] = [float(s) for s in P.sig[:, idx]]
+            d["J"] = float(P.J[idx])
+            bad = [name for name, arr in (("position", P.x[:, idx]), ("velocity", P.v[:, idx]),
+                                          ("stress", P.sig[:, idx]), ("J", P.J[idx:idx + 1]))
+                   if not np.all(np.isfinite(arr))]  # fmt: skip
             if bad:
                 d["non_finite"] = bad
         if status == ST_DT_COLLAPSE:
-            d["max_signal_speed"] = float(st.sc[S_SMAX])
-            d["max_viscosity"] = float(st.sc[S_NUMAX])
+            d["max_signal_speed"] = float(c["smax"])
+            d["max_viscosity"] = float(c["numax"])
             d.update(self._collapsed_step())
         return d
 
-    def _estimate(self, end: float, steps: int, seconds: float) -> str:
-        """The remaining steps at the last step's dt and the wall time at the rate of the first
-        ``steps`` steps (``seconds``), with a warning above an hour."""
-        dt = float(self.state.sc[S_DT])
-        left = max(0.0, end - self.time)
-        n_steps = int(math.ceil(left / dt)) if dt > 0 else 0
-        wall = n_steps * seconds / steps
-        return _estimate_message(n_steps, dt, self.state.n, 2, wall, steps)
-
     def _collapsed_step(self) -> dict[str, Any]:
-        """The time step the control asked for when it fell below ``time.dt_min`` (the same
-        limits as the compiled loop: dt_max, the Courant limit CFL h / max(c + |v|) with the
-        wave-speed floor, the viscous limit C_ν h² / (2 ν_max)) and which limit set it."""
-        gp, sc = self.state.gp, self.state.sc
-        h = float(gp[G_H])
-        dt, limit = float(gp[G_DTMAX]), "time.dt_max"
-        smax = max(float(sc[S_SMAX]), float(gp[G_CFLOOR]))
-        if smax > 0.0 and gp[G_CFL] * h / smax < dt:
-            dt, limit = float(gp[G_CFL] * h / smax), "Courant limit CFL h / max(c + |v|)"
-        if sc[S_NUMAX] > 0.0 and gp[G_VISC] * h * h / (2.0 * sc[S_NUMAX]) < dt:
-            dt = float(gp[G_VISC] * h * h / (2.0 * sc[S_NUMAX]))
+        prm, c = self.engine.prm[0], self.clock
+        h = float(prm["h"])
+        dt, limit = float(prm["dt_max"]), "time.dt_max"
+        smax = max(float(c["smax"]), float(prm["c_floor"]))
+        if smax > 0.0 and prm["cfl"] * h / smax < dt:
+            dt, limit = float(prm["cfl"] * h / smax), "Courant limit CFL h / max(c + |v|)"
+        if c["numax"] > 0.0 and prm["visc"] * h * h / (2.0 * c["numax"]) < dt:
+            dt = float(prm["visc"] * h * h / (2.0 * c["numax"]))
             limit = "viscous limit C_nu h^2 / (2 nu_max)"
-        return {"dt_collapsed": dt, "dt_min": float(gp[G_DTMIN]), "dt_limit": limit}
+        return {"dt_collapsed": dt, "dt_min": float(prm["dt_min"]), "dt_limit": limit}
 
     def _failure_message(self, status: int, idx: int) -> str:
         d = self._diagnostic(status, idx)
-        where = (
-            f" at point {idx} (x = {d['position'][0]:.6g} m, y = {d['position'][1]:.6g} m)"
-            if idx >= 0
-            else ""
-        )
+        where = ""
+        if idx >= 0:
+            where = f" at point {idx} (x = " + ", ".join(f"{v:.6g}" for v in d["position"]) + " m)"
         extra = f"; non-finite: {', '.join(d['non_finite'])}" if d.get("non_finite") else ""
         if "dt_collapsed" in d:
             extra += (f"; dt = {d['dt_collapsed']:.3g} s < time.dt_min = {d['dt_min']:.3g} s "
-                      f"({d['dt_limit']}, max(c + |v|) = {d['max_signal_speed']:.4g} m/s, "
-                      f"max viscosity = {d['max_viscosity']:.3g} m²/s; last step "
-                      f"dt = {d['dt']:.3g} s)")  # fmt: skip
+                      f"({d['dt_limit']})")  # fmt: skip
         return f"{d['reason']}{where} at t = {d['time']:.6g} s, step {d['step']}{extra}"
 
-    # --------------------------------------------------------------------------- diagnostics
+    def _estimate(self, end: float, steps: int, seconds: float) -> str:
+        dt = float(self.clock["dt"])
+        left = max(0.0, end - self.time)
+        n_steps = int(math.ceil(left / dt)) if dt > 0 else 0
+        wall = n_steps * seconds / steps
+        return _estimate_message(n_steps, dt, self.engine.n, self.dim, wall, steps)
+
     def _invariants(self) -> dict[str, float]:
-        st = self.state
-        return {
-            "mass": float(np.sum(st.mass)),
-            "small_volume": float(np.sum(st.vol0 * st.phi)),
-            "momentum_x": float(np.sum(st.mass * st.v[0])),
-            "momentum_y": float(np.sum(st.mass * st.v[1])),
-        }
+        P = self.engine.points
+        out = {"mass": float(np.sum(P.mass)), "small_volume": float(np.sum(P.vol0 * P.phi))}
+        for a, name in enumerate("xyz"[: self.dim]):
+            out[f"momentum_{name}"] = float(np.sum(P.mass * P.v[a]))
+        return out
 
     def conservation(self) -> dict[str, float]:
-        """Relative drift of total mass and small-grain volume, and the momentum change."""
         now, ini = self._invariants(), self._initial
-        return {
+        out = {
             "mass_drift": (now["mass"] - ini["mass"]) / ini["mass"] if ini["mass"] else 0.0,
-            "small_volume_drift": (
-                (now["small_volume"] - ini["small_volume"]) / ini["small_volume"]
-                if ini["small_volume"]
-                else 0.0
-            ),
-            "momentum_x": now["momentum_x"],
-            "momentum_y": now["momentum_y"],
-            "momentum_x_initial": ini["momentum_x"],
-            "momentum_y_initial": ini["momentum_y"],
-            "gravity_x": float(self.state.gp[G_GX]),
-            "gravity_y": float(self.state.gp[G_GY]),
-        }
+            "small_volume_drift": ((now["small_volume"] - ini["small_volume"])
+                                   / ini["small_volume"] if ini["small_volume"] else 0.0),
+        }  # fmt: skip
+        for k in now:
+            if k.startswith("momentum"):
+                out[k] = now[k]
+                out[k + "_initial"] = ini[k]
+        return out
+
+    def segregation_diagnostics(self) -> dict[str, float]:
+        from .segregation.diagnostics import segregation_index, species_centroids
+
+        P = self.engine.points
+        ys, yl = species_centroids(P.x[1], P.vol0, P.phi)
+        return {"segregation_index": segregation_index(P.x[1], P.vol0, P.phi),
+                "centroid_small": ys, "centroid_large": yl,
+                "small_volume_drift": self.conservation()["small_volume_drift"]}  # fmt: skip
+
+    # --------------------------------------------------------------------------- outputs
+    def _area(self) -> float | None:
+        """The footprint (x–z area) over which the profiles' solid fraction is taken."""
+        prm = self.engine.prm[0]
+        if not prm["periodic_x"]:
+            return None
+        area = float(prm["length_x"])
+        if self.dim == 3:
+            area *= float(prm["zhi"] - prm["zlo"])
+        return area
 
     def profiles(self) -> dict[str, np.ndarray]:
-        """Depth profiles of the current state on the output bins."""
+        """Depth profiles of the current state, averaged over x and the modelled width."""
+        P = self.engine.points
         cfg = self.config
-        length = float(self.state.gp[G_LX]) if self.state.gp[G_LX] > 0 else None
-        return depth_profiles(self.state, self.edges, cfg.material.solid_fraction,
-                              cfg.material.grain_density, length,
-                              cfg.material.rheology == "nonlocal")  # fmt: skip
+        nb = len(self.edges) - 1
+        idx = np.searchsorted(self.edges, P.x[1], side="right") - 1
+        ok = (idx >= 0) & (idx < nb)
+        i = idx[ok]
+        wv = P.vol0[ok]
+        wm = P.mass[ok]
+
+        def avg(values: np.ndarray, w: np.ndarray) -> np.ndarray:
+            num = np.bincount(i, weights=w * values[ok], minlength=nb)
+            den = np.bincount(i, weights=w, minlength=nb)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+
+        mu, g = self._fluidity()
+        out = {
+            "phi_small": avg(P.phi, wv),
+            "velocity_x": avg(P.v[0], wm),
+            "velocity_y": avg(P.v[1], wm),
+            "pressure": avg(P.diag[D_PRESSURE], wv),
+            "inertial_number": avg(P.diag[D_INERTIAL], wv),
+            "shear_rate": avg(P.diag[D_SHEAR_RATE], wv),
+            "segregation_driver": avg(P.diag[D_DRIVER], wv),
+            "shear_stress": avg(P.sig[XY], wv),
+            "normal_stress": avg(-P.sig[YY], wv),
+            "stress_ratio": avg(mu, wv),
+            "fluidity": avg(g, wv),
+        }
+        solid = np.bincount(i, weights=wm / cfg.material.grain_density, minlength=nb)
+        area = self._area()
+        out["solid_fraction"] = (np.where(solid > 0, solid / (area * np.diff(self.edges)), np.nan)
+                                 if area else np.full(nb, np.nan))  # fmt: skip
+        return out
+
+    def _fluidity(self) -> tuple[np.ndarray, np.ndarray]:
+        """(μ, g) of every point: the stress ratio and the fluidity (the state g of a nonlocal
+        run, γ̇/μ of a local one; as analysis.profiles.point_fluidity)."""
+        P = self.engine.points
+        mu = stress_ratio(P.sig, P.diag[D_PRESSURE])
+        if self.config.material.rheology == "nonlocal":
+            return mu, P.gf.copy()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return mu, np.where(mu > 0, P.diag[D_SHEAR_RATE] / np.where(mu > 0, mu, 1.0), 0.0)
+
+    def cross_section(self) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """Maps across the channel (y bins × z cells), averaged along x: (y, z, fields)."""
+        P = self.engine.points
+        prm = self.engine.prm[0]
+        h = float(prm["h"])
+        zlo, zhi = float(prm["zlo"]), float(prm["zhi"])
+        nz = max(1, int(round((zhi - zlo) / h)))
+        ze = zlo + np.arange(nz + 1) * (zhi - zlo) / nz
+        ny = len(self.edges) - 1
+        iy = np.searchsorted(self.edges, P.x[1], side="right") - 1
+        iz = np.clip(np.searchsorted(ze, P.x[2], side="right") - 1, 0, nz - 1)
+        ok = (iy >= 0) & (iy < ny)
+        cell = iy[ok] * nz + iz[ok]
+        wv = P.vol0[ok]
+        wm = P.mass[ok]
+
+        def avg(values: np.ndarray, w: np.ndarray) -> np.ndarray:
+            num = np.bincount(cell, weights=w * values[ok], minlength=ny * nz)
+            den = np.bincount(cell, weights=w, minlength=ny * nz)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                r = np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+            return r.reshape(ny, nz)
+
+        fields = {
+            "velocity_x": avg(P.v[0], wm),
+            "phi_small": avg(P.phi, wv),
+            "pressure": avg(P.diag[D_PRESSURE], wv),
+            "shear_rate": avg(P.diag[D_SHEAR_RATE], wv),
+            "fluidity": avg(self._fluidity()[1], wv),
+        }
+        solid = np.bincount(cell, weights=wm / self.config.material.grain_density,
+                            minlength=ny * nz).reshape(ny, nz)  # fmt: skip
+        vol = float(prm["length_x"]) * np.diff(self.edges)[:, None] * np.diff(ze)[None, :]
+        fields["solid_fraction"] = np.where(solid > 0, solid / vol, np.nan)
+        yc = 0.5 * (self.edges[1:] + self.edges[:-1])
+        zc = 0.5 * (ze[1:] + ze[:-1])
+        return yc, zc, fields
+
+    def _cross_dataset(self) -> xr.Dataset:
+        yc, zc, _ = self.cross_section()
+        times = [t for t, _ in self._cross]
+        data = {}
+        for k, (units, long) in CROSS_VARIABLES.items():
+            arr = np.stack([f[k] for _, f in self._cross]) if self._cross else np.zeros(
+                (0, len(yc), len(zc)))  # fmt: skip
+            data[k] = (("time", "y", "z"), arr, {"units": units, "long_name": long})
+        return xr.Dataset(data, coords={"time": ("time", np.array(times), {"units": "s"}),
+                                        "y": ("y", yc, {"units": "m"}),
+                                        "z": ("z", zc, {"units": "m"})},
+                          attrs=self._attrs())  # fmt: skip
 
     # --------------------------------------------------------------------------- run
     def _attrs(self) -> dict[str, str]:
@@ -411,7 +494,7 @@ class Simulation:
             # in a fresh and a resumed run, and no drift onto (or off) an output time
             k_ckpt = math.floor(self.time / ckpt_dt + 1e-9) + 1 if ckpt_dt > 0 else 0
             next_ckpt = k_ckpt * ckpt_dt if ckpt_dt > 0 else math.inf
-            bar = _progress(show, end, self.time, self.state.n)
+            bar = _progress(show, end, self.time, self.engine.n)
             bar.start(self.steps, self.wall_time)
             self._write_runinfo(status, None)
             for t_out in out_times:
@@ -503,22 +586,17 @@ class Simulation:
         return RunResult(info["status"], exit_code, info)
 
     def _compile_kernels(self) -> float:
-        """Compile the kernels (or load them from Numba's cache) before the first step: the
-        initial state is primed (fresh run) and the time loop called for zero steps, which
-        changes nothing. Returns the seconds taken (``compile_s`` of run.json), which are not
-        part of the wall time of the loop; the first run of a fresh install says that it
-        compiles (2–4 minutes)."""
-        from .column import advance_column
-
-        column = self.state.nodes is not None
-        loop = advance_column if column else advance
-        cold = not loop.signatures and not kernel_cache_warm(
-            "column.advance_column" if column else "step.advance"
-        )
-        if cold:
-            print("segmpm: compiling kernels (first run only, about 2-4 minutes)",
-                  file=sys.stderr, flush=True)  # fmt: skip
+        """Compile the kernels (or load them from the kernel cache) before the first step: the
+        time loop is called for zero steps, which changes nothing. Returns the seconds taken
+        (``compile_s`` of run.json), which are not part of the wall time of the loop; a cold
+        compile says that it compiles and, when done, how long it took."""
         t0, wall = _time.perf_counter(), self.wall_time
+        stem = Path(self.kernels.__file__).stem  # the step file of the run's law
+        loop = "advance_column" if self.engine.nodes is not None else "advance"
+        cold = not getattr(self.kernels, loop).signatures and not kernel_cache_warm(stem, loop)
+        if cold:
+            print(f"segmpm: compiling the {self.dim}-D kernels (first run only, 1-3 minutes)",
+                  file=sys.stderr, flush=True)  # fmt: skip
         try:
             self.advance(self.time, 0)
         finally:
@@ -560,23 +638,38 @@ class Simulation:
                   file=sys.stderr)  # fmt: skip
         return d
 
-    def segregation_diagnostics(self) -> dict[str, float]:
-        """Segregation index, species centroids and small-grain volume drift of the current state."""
-        from .segregation.diagnostics import segregation_index, species_centroids
-
-        st = self.state
-        ys, yl = species_centroids(st.x[1], st.vol0, st.phi)
-        return {
-            "segregation_index": segregation_index(st.x[1], st.vol0, st.phi),
-            "centroid_small": ys,
-            "centroid_large": yl,
-            "small_volume_drift": self.conservation()["small_volume_drift"],
-        }
-
     def _output(self, t: float, writer, vtk) -> None:
+        from .io.profiles import write_netcdf
+
         writer.add(t, self.profiles(), self.segregation_diagnostics())
-        if self.config.output.fields and self.state.nodes is None:  # the column: profiles only
-            vtk.add(t, self.state, self.config.material.rheology == "nonlocal")
+        P = self.engine.points
+        if self.dim == 3 and self.config.scenario.kind == "chute":
+            self._cross = [(tt, f) for tt, f in self._cross if tt < t - 1e-12]
+            self._cross.append((t, self.cross_section()[2]))
+            write_netcdf(self.out_dir / "cross_section.nc", self._cross_dataset())
+        if self.config.output.fields and self.engine.nodes is None:  # the column: profiles only
+            mu, g = self._fluidity()
+            data = {"velocity_x": P.v[0], "velocity_y": P.v[1],
+                    "velocity_z": P.v[2] if self.dim == 3 else np.zeros(self.engine.n),
+                    "phi_small": P.phi, "pressure": P.diag[D_PRESSURE],
+                    "shear_rate": P.diag[D_SHEAR_RATE], "inertial_number": P.diag[D_INERTIAL],
+                    "segregation_driver": P.diag[D_DRIVER], "sigma_xy": P.sig[XY],
+                    "sigma_yy": P.sig[YY], "J": P.J, "stress_ratio": mu,
+                    "fluidity": g}  # fmt: skip
+            if self.dim == 3:
+                data["sigma_yz"] = P.sig[YZ]
+            z = P.x[2] if self.dim == 3 else np.zeros(self.engine.n)
+            vtk.add_points(t, P.x[0], P.x[1], z, data)
+
+    def _restore_cross(self, until: float) -> None:
+        path = self.out_dir / "cross_section.nc"
+        if not path.exists():
+            return
+        with xr.open_dataset(path, engine="h5netcdf") as ds:
+            ds = ds.load()
+        for i, t in enumerate(ds["time"].values):
+            if t <= until + 1e-12:
+                self._cross.append((float(t), {k: ds[k].values[i] for k in CROSS_VARIABLES}))
 
     def _write_runinfo(self, status: str, failure: dict[str, Any] | None) -> dict[str, Any]:
         info = self._runinfo(status, failure)
@@ -584,67 +677,48 @@ class Simulation:
         return info
 
     def _runinfo(self, status: str, failure: dict[str, Any] | None) -> dict[str, Any]:
-        n = self.state.n
+        n = self.engine.n
         info: dict[str, Any] = {
-            "status": status,
-            "segmpm_version": __version__,
-            "scenario": self.config.scenario.kind,
-            "time": self.time,
-            "time_end": self.config.time.end,
-            "steps": self.steps,
-            "n_points": n,
-            "wall_time_s": self.wall_time,
+            "status": status, "segmpm_version": __version__,
+            "scenario": self.config.scenario.kind, "dimension": self.dim,
+            "engine": "generic", "time": self.time, "time_end": self.config.time.end,
+            "steps": self.steps, "n_points": n, "wall_time_s": self.wall_time,
             "compile_s": self.compile_s,
-            "particle_steps_per_second": (self.steps * n / self.wall_time)
-            if self.wall_time > 0
-            else None,
-            "last_dt": float(self.state.sc[S_DT]),
-            "conservation": self.conservation(),
-            "segregation": self.segregation_diagnostics(),
-            "threads": self.threads,
-            "threads_policy": self.threads_reason,
-            "threading_layer": threading_layer(),
-            "concentration_steps": int(self.state.sc[S_NSEG]),
-            "fluidity_updates": int(self.state.sc[S_NFLU]),
-            "rheology": self.config.material.rheology,
-        }
+            "particle_steps_per_second": (self.steps * n / self.wall_time
+                                          if self.wall_time > 0 else None),
+            "last_dt": float(self.clock["dt"]), "conservation": self.conservation(),
+            "segregation": self.segregation_diagnostics(), "threads": self.threads,
+            "threads_policy": self.threads_reason, "threading_layer": threading_layer(),
+            "concentration_steps": int(self.clock["nseg"]),
+            "fluidity_updates": int(self.clock["nflu"]),
+            "rheology": self.config.material.rheology, "solver": self.config.scenario.solver,
+        }  # fmt: skip
         if failure is not None:
             info["failure"] = failure
         return info
 
     # --------------------------------------------------------------------------- checkpoints
     def save_checkpoint(self, path: str | Path) -> None:
-        """Atomically write everything needed to continue this run."""
-        arrays = self.state.arrays()
-        meta = {
-            "time": self.time,
-            "steps": self.steps,
-            "wall_time": self.wall_time,
-            "initial": self._initial,
-            "configuration": self.config.to_dict(),
-            "segmpm_version": __version__,
-        }
+        arrays = self.engine.arrays()
+        meta = {"time": self.time, "steps": self.steps, "wall_time": self.wall_time,
+                "initial": self._initial, "configuration": self.config.to_dict(),
+                "segmpm_version": __version__, "dimension": self.dim}  # fmt: skip
         save_checkpoint(path, arrays, meta)
         self._ckpt_time = self.time
 
     def load_checkpoint(self, path: str | Path) -> None:
-        """Restore the state saved by :meth:`save_checkpoint`."""
         arrays, meta = load_checkpoint(path)
-        st = self.state
-        keys = (*STATE_ARRAYS, "sc") + (("nodes",) if st.nodes is not None else ())
-        for k in keys:
-            if k not in arrays:
-                raise ValueError(f"checkpoint {path}: no array {k} (a checkpoint of another "
-                                 "solver?)")  # fmt: skip
-            if arrays[k].shape != getattr(st, k).shape:
-                raise ValueError(f"checkpoint {path}: array {k} has shape {arrays[k].shape}, "
-                                 f"expected {getattr(st, k).shape} for this configuration")  # fmt: skip
-            getattr(st, k)[...] = arrays[k]
+        for k, target in self.engine.arrays().items():
+            if k not in arrays or arrays[k].shape != target.shape:
+                raise ValueError(f"checkpoint {path}: array {k} missing or of another shape "
+                                 "(a checkpoint of another configuration or dimension?)")  # fmt: skip
+            target[...] = arrays[k]
         self._initial = meta["initial"]
         self.wall_time = float(meta.get("wall_time", 0.0))
-        self._primed = True
         self._failed = None
         self._ckpt_time = self.time
+        self._cross = []
+        self._restore_cross(self.time)
 
     # --------------------------------------------------------------------------- signals
     def _install_signals(self) -> None:
@@ -665,6 +739,21 @@ class Simulation:
         for sig, h in getattr(self, "_old_handlers", {}).items():
             signal.signal(sig, h)
         self._old_handlers = {}
+
+
+def build_count(cfg: Config) -> int:
+    """An estimate of the number of points (for the thread policy, before building)."""
+    g = cfg.geometry
+    s = cfg.grid.cell_size / cfg.grid.particles_per_cell
+    if cfg.scenario.solver == "column":
+        return max(2, round(g.depth / s))
+    if cfg.scenario.kind == "chute":
+        w = g.width / 2 if g.mirror else g.width
+        return int(g.length * g.depth * (w if g.dimension == 3 else s) / s**3)
+    if cfg.scenario.kind in ("box", "bar"):
+        return int(g.length * g.depth * (g.width if g.dimension == 3 else s) / s**3)
+    r = g.column_width
+    return int((0.785 * r * r if g.dimension == 3 else r * s) * g.column_height / s**3)
 
 
 def _estimate_message(n_steps: int, dt: float, n: int, dim: int, wall: float, steps: int) -> str:

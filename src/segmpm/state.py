@@ -1,4 +1,6 @@
-"""The simulation state: material points (struct of arrays), grid work arrays, scalar state.
+"""The plane-strain state layout of the NumPy references (segmpm.mpm.reference.step_np,
+segmpm.column.column_step_np): material points (struct of arrays) and the scalar state. The
+engine's own records are segmpm.engine.records; tests translate between the two.
 
 Shapes (N material points, grid N_x × N_y nodes):
 
@@ -27,26 +29,26 @@ nodes      (4, N+1)  column model only (``scenario.solver = "column"``): the nod
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from .mpm.fluidity import allocate as fluidity_work
-from .mpm.params import G_NX, G_NY, S_NSLOTS
-from .mpm.transfer import N_FIELDS, STRIP, V_LANES
+from .engine.records import D_DRIVER, D_INERTIAL, D_NU, D_PRESSURE, D_SHEAR_RATE, D_SPEED
+from .mpm.params import S_NSLOTS
 
 #: arrays that define the physical state (saved in checkpoints)
 STATE_ARRAYS = (
     "x", "v", "C", "mass", "vol0", "J", "eps", "sig", "phi", "gf", "diag", "s_int", "g_int",
 )  # fmt: skip
 
-D_PRESSURE, D_SHEAR_RATE, D_INERTIAL, D_DRIVER, D_SPEED, D_NU = range(6)
+#: the rows of ``diag`` (defined with the engine's records)
+DIAG_ROWS = (D_PRESSURE, D_SHEAR_RATE, D_INERTIAL, D_DRIVER, D_SPEED, D_NU)
 
 
 @dataclass
 class State:
-    """Material points, scalar state and the preallocated work arrays of the compiled loop."""
+    """Material points, scalar state and the records of the NumPy reference step."""
 
     x: np.ndarray
     v: np.ndarray
@@ -64,11 +66,9 @@ class State:
     sc: np.ndarray
     gp: np.ndarray
     mp: np.ndarray
-    work: dict[str, np.ndarray] = field(default_factory=dict)
-    #: segregation: parameter record (segregation.closures ``P_*``), concentration grid, scratch
+    #: segregation: parameter record (segregation.closures ``P_*``) and concentration grid
     seg_prm: np.ndarray | None = None
     cg: Any = None
-    seg_work: tuple = ()
     #: the column model's nodes (None for the MPM; saved in checkpoints when present)
     nodes: np.ndarray | None = None
 
@@ -110,42 +110,17 @@ class State:
             gp=gp,
             mp=mp,
         )
-        st.allocate_work()
         return st
 
-    def allocate_work(self) -> None:
-        """(Re)allocate the grid and sorting work arrays for this state's grid."""
-        nx, ny, n = int(self.gp[G_NX]), int(self.gp[G_NY]), self.n
-        nstrips = ny // STRIP + 2
-        self.work = {
-            "grid": np.zeros((nx, ny, N_FIELDS)),
-            "gv": np.zeros((nx, ny, V_LANES)),
-            "strip_start": np.zeros(nstrips + 1, dtype=np.int64),
-            # 32-bit point indices and 8-bit flags: bytes per particle-step (docs/performance.md)
-            "cursor": np.zeros(n, dtype=np.int32),
-            "order": np.zeros(n, dtype=np.int32),
-            "flags": np.zeros(n, dtype=np.int8),
-            "x_old": np.zeros((2, n)),
-            "lg": np.zeros((4, n)),
-            # nodal fields of the fluidity update (mpm.fluidity)
-            "fw": fluidity_work(nx, ny),
-        }
-        if self.cg is not None:
-            from .segregation import allocate_work
-
-            self.seg_work = allocate_work(self.cg)
-
     def arrays(self) -> dict[str, np.ndarray]:
-        """The physical state arrays (no work arrays; the column's nodes when present)."""
+        """The physical state arrays (the column's nodes when present)."""
         out = {k: getattr(self, k) for k in (*STATE_ARRAYS, "sc")}
         if self.nodes is not None:
             out["nodes"] = self.nodes
         return out
 
     def copy(self) -> State:
-        """Deep copy (work arrays reallocated)."""
-        st = State(
+        """Deep copy."""
+        return State(
             **{k: v.copy() for k, v in self.arrays().items()}, gp=self.gp.copy(), mp=self.mp.copy()
         )
-        st.allocate_work()
-        return st

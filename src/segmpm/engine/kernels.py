@@ -37,7 +37,26 @@ from numba import njit, prange
 
 from segmpm import _llvm_options  # noqa: F401  (before any kernel compiles)
 from segmpm._fmath import flog, fsqrt
-from segmpm.column import node_velocity  # the column's node update (one source)
+from segmpm.engine.helpers import (
+    B_BAD,
+    B_GDOT,
+    B_I,
+    B_NU,
+    B_ROWS,
+    B_S,
+    B_SPEED,
+    CAPACITY_MIN,
+    FILL_OFFSET,
+    FILL_SLOPE,
+    PIC,
+    SAFETY,
+    TINY,
+    _balance,
+    _reduce_block,
+    counting_sort,
+    node_velocity,
+    sidewall_drag,
+)
 from segmpm.engine.records import (
     BC_FRICTION,
     BC_NOSLIP,
@@ -50,6 +69,7 @@ from segmpm.engine.records import (
     XY,
     YY,
 )
+from segmpm.engine.shape import bspline2_frac
 from segmpm.materials import VAR_ELASTIC, VAR_FEI_LINEAR, VAR_FEI_POWER, VAR_NGF
 from segmpm.materials.ngf import relax_logistic, return_factor
 from segmpm.materials.params import (
@@ -60,8 +80,6 @@ from segmpm.materials.params import (
     KIND_FEI2016,
     KIND_FEI2016_NGF,
 )
-from segmpm.mpm.boundary import sidewall_drag
-from segmpm.mpm.fluidity import CAPACITY_MIN, FILL_OFFSET, FILL_SLOPE, PIC, SAFETY, TINY
 from segmpm.mpm.params import (
     ST_DT_COLLAPSE,
     ST_LEFT_GRID,
@@ -70,11 +88,6 @@ from segmpm.mpm.params import (
     TRANSFER_AFLIP,
     TRANSFER_FLIP,
 )
-from segmpm.mpm.shape import bspline2_frac
-
-# the rows of a block's buffer (diagnostics, step check) and their reduction: the 2-D engine's
-from segmpm.mpm.step import B_BAD, B_GDOT, B_I, B_NU, B_ROWS, B_S, B_SPEED, _reduce_block
-from segmpm.mpm.transfer import _balance, counting_sort
 from segmpm.segregation.closures import (
     M_NONE,
     P_D_LARGE,
@@ -1674,7 +1687,7 @@ def diffuse(fw, prm, dt, dmax, planes, serial=False):
     stability limit h²/(2 D max D/c): c_i ∂g_i/∂t = Σ_faces D_f (g_j − g_i)/h² over the 2 D
     neighbours (periodic in x if the grid is). Returns the number of sub-steps. The x-planes
     in parallel; a grid one node wide (the column model), or any grid on one thread, serially,
-    without the cost of two parallel regions per sub-step (4× the production column's fluidity
+    without the cost of two parallel regions per sub-step (4× the former plane-strain column's fluidity
     step with them)."""
     if not (dmax > 0.0) or not (dt > 0.0):
         return 0
@@ -1867,7 +1880,7 @@ def concentration_step(P, seg, t_int):
     (i) points → cells with tent weights restricted to active cells (fill θ ≥ θ_min), (j) the
     closure's monotone face fluxes (x, y and, in 3-D, z faces) in explicit substeps, (k) the
     incremental bound-preserving mapping back. Conserves Σ V⁰ φ_s; keeps 0 ≤ φ_s ≤ 1. The same
-    algorithm as segregation.grid.concentration_step (2-D production engine). Returns the
+    algorithm as segregation.grid.concentration_step (the 2-D compiled reference). Returns the
     number of substeps."""
     sp = seg.prm
     x = P.x
@@ -2175,7 +2188,7 @@ def update_stress(P, mat, dt, full, threads):
 
     Blocks of points in parallel; in each, the update loop with the law of this copy (``LAW``,
     a compile-time constant: :func:`_stress_block`, vectorised) and then a short scalar reduction
-    (``segmpm.mpm.step._reduce_block``: the largest c + |v| and ν, the first failing point, the
+    (``engine.helpers._reduce_block``: the largest c + |v| and ν, the first failing point, the
     diagnostics of every point if ``full``, else of the failing ones).
     ``threads`` only sets the block size (at least two blocks per thread); no result depends on
     it."""

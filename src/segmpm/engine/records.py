@@ -27,7 +27,7 @@ eps       (NE, N)    elastic strain ε^e, tension positive (NE = 4 in 2-D, 6 in 
 sig       (NE, N)    Cauchy stress σ, Pa
 phi       (N,)       small-grain concentration φ_s
 gf        (N,)       granular fluidity g of the nonlocal rheology, 1/s (0 otherwise)
-diag      (6, N)     p_e, γ̇, I, S, c + |v|, ν (rows ``D_*`` of segmpm.state)
+diag      (6, N)     p_e, γ̇, I, S, c + |v|, ν (rows ``D_*``)
 s_int     (N,)       ∫ S dt over the current segregation subcycle
 g_int     (N,)       ∫ γ̇ dt over the current segregation subcycle
 lg        (D·D, N)   velocity gradient L of the last G2P (work)
@@ -48,6 +48,9 @@ from ..materials import params as _mparams
 
 #: symmetric-tensor components in the engine's storage order
 XX, YY, ZZ, XY, XZ, YZ = range(6)
+
+#: rows of the points' ``diag``: p_e (Pa), γ̇ (1/s), I, S (Pa), c + |v| (m/s), ν (m²/s)
+D_PRESSURE, D_SHEAR_RATE, D_INERTIAL, D_DRIVER, D_SPEED, D_NU = range(6)
 
 #: rows of the column model's node array (COL_ROWS, N + 1) (``scenario.solver = "column"``):
 #: position y (m), velocity u (downslope) and v (normal), lumped mass per metre of z (kg/m)

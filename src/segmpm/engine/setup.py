@@ -204,7 +204,7 @@ def build_collapse(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray
 
 def build_box(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray]:
     """Periodic layer of depth H floating in the middle of the grid (no base, no sidewall
-    force): free fall and momentum tests (the 2-D production builder's box). 3-D: across
+    force): free fall and momentum tests (the 2-D reference builder's box). 3-D: across
     0 ≤ z ≤ ``geometry.width`` between open planes, with ``geometry.headroom`` × W of grid on
     either side."""
     g = cfg.geometry
@@ -266,7 +266,7 @@ BUILDERS = {"chute": build_chute, "collapse": build_collapse, "box": build_box, 
 
 
 def segregation_grid(cfg: Config, prm: np.ndarray, x: np.ndarray, nwork: int) -> Segregation:
-    """The extra Eulerian grid over the MPM grid (as the 2-D production engine's,
+    """The extra Eulerian grid over the MPM grid (as the 2-D reference builder's,
     scenarios.builders.attach_segregation), closed in z between the walls (3-D), with cells of
     ``segregation.cell_size`` (default h/2) and one ghost layer on the closed sides."""
     from ..segregation import conc_cell_size, make_conc_grid, pack_params

@@ -9,7 +9,6 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 from pyevtk.hl import pointsToVTK
 
-from ..state import D_DRIVER, D_INERTIAL, D_PRESSURE, D_SHEAR_RATE, State
 from .atomic import remove_quietly, write_text, write_with
 
 
@@ -19,28 +18,6 @@ class VTKSeries:
     def __init__(self, folder: str | Path):
         self.folder = Path(folder)
         self.entries: list[tuple[float, str]] = []
-
-    def add(self, time: float, st: State, nonlocal_: bool = False) -> Path:
-        """Write a snapshot of the material points at ``time`` (``nonlocal_``: the fluidity is the
-        nonlocal state g, else γ̇/μ)."""
-        from ..analysis.profiles import point_fluidity
-
-        mu, g = point_fluidity(st, nonlocal_)
-        data = {
-            "velocity_x": np.ascontiguousarray(st.v[0]),
-            "velocity_y": np.ascontiguousarray(st.v[1]),
-            "phi_small": np.ascontiguousarray(st.phi),
-            "pressure": np.ascontiguousarray(st.diag[D_PRESSURE]),
-            "shear_rate": np.ascontiguousarray(st.diag[D_SHEAR_RATE]),
-            "inertial_number": np.ascontiguousarray(st.diag[D_INERTIAL]),
-            "segregation_driver": np.ascontiguousarray(st.diag[D_DRIVER]),
-            "sigma_xy": np.ascontiguousarray(st.sig[2]),
-            "sigma_yy": np.ascontiguousarray(st.sig[1]),
-            "J": np.ascontiguousarray(st.J),
-            "stress_ratio": np.ascontiguousarray(mu),
-            "fluidity": np.ascontiguousarray(g),
-        }
-        return self.add_points(time, st.x[0], st.x[1], np.zeros(st.n), data)
 
     def add_points(self, time: float, x: np.ndarray, y: np.ndarray, z: np.ndarray,
                    data: dict[str, np.ndarray]) -> Path:  # fmt: skip

@@ -6,33 +6,13 @@
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-from .._fmath import fsqrt
-from .fei2016 import deviatoric_rate, jaumann_predictor, jaumann_predictor_np
+from .fei2016 import jaumann_predictor_np
 from .params import M_F, M_LAMBDA, M_MU, M_RHO_S
 
 
-@njit(cache=True, error_model="numpy", inline="always")
-def elastic_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
-    """Stress update of one point; same contract as :func:`segmpm.materials.fei2016.fei_update`."""
-    lam = prm[M_LAMBDA]
-    mu = prm[M_MU]
-    rho = prm[M_F] * prm[M_RHO_S] / J
-    exx, eyy, exy, ezz = jaumann_predictor(exx, eyy, exy, ezz, l00, l01, l10, l11, dt)
-    tr = exx + eyy + ezz
-    sxx = lam * tr + 2.0 * mu * exx
-    syy = lam * tr + 2.0 * mu * eyy
-    sxy = 2.0 * mu * exy
-    szz = lam * tr + 2.0 * mu * ezz
-    p = -(sxx + syy + szz) / 3.0
-    gdot = deviatoric_rate(l00, l01, l10, l11)[5]
-    c = fsqrt((lam + 2.0 * mu) / rho)
-    return exx, eyy, exy, ezz, sxx, syy, sxy, szz, p, gdot, 0.0, 0.0, c, 0.0
-
-
 def elastic_update_np(prm, L, dt, eps, J, phi):
-    """NumPy reference of :func:`elastic_update` (arrays of points)."""
+    """NumPy reference of the linear elastic point update (plane strain, arrays of points)."""
     L = np.asarray(L, dtype=np.float64)
     lam, mu = prm[M_LAMBDA], prm[M_MU]
     rho = prm[M_F] * prm[M_RHO_S] / J

@@ -9,31 +9,28 @@
   form) with d̄ = φ_s d_s + (1 − φ_s) d_l of the material point.
 * Gas state: no stress when I₁ ≤ 0 (H(I₁) of the seed's Eq. 5), deviatoric strain reset.
 
-Strains and stresses are stored as (xx, yy, xy, zz): plane strain, tension positive. docs/model.md
-gives every decision with the switch for the alternative.
+This module holds the plane-strain NumPy reference of the point update (``fei_update_np``, strains
+and stresses as (xx, yy, xy, zz), tension positive) and the energy, stress and oedometric helpers;
+the compiled law is the engine's ``fei_tensor`` (engine/kernels.py, full tensor form).
+docs/model.md gives every decision with the switch for the alternative.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-from .._fmath import flog, fsqrt
 from .params import (
     DRIVER_A,
     DRIVER_B,
     DRIVER_P,
     M_A,
     M_C,
-    M_CAPR,
-    M_CW,
     M_DL,
     M_DRIVER,
     M_DS,
     M_F,
     M_GFLOOR,
     M_H,
-    M_IRHO0,
     M_KAPPA,
     M_KAPPA_T,
     M_MU_A,
@@ -45,149 +42,8 @@ from .params import (
     M_ZETA,
 )
 
-
-@njit(cache=True, error_model="numpy", inline="always")
-def jaumann_predictor(exx, eyy, exy, ezz, l00, l01, l10, l11, dt):
-    """ε^e + Δt (d + w ε^e − ε^e w): objective elastic predictor (docs/model.md §1, step 1)."""
-    dxy = 0.5 * (l01 + l10)
-    om = 0.5 * (l01 - l10)
-    nxx = exx + dt * (l00 + 2.0 * om * exy)
-    nyy = eyy + dt * (l11 - 2.0 * om * exy)
-    nxy = exy + dt * (dxy + om * (eyy - exx))
-    return nxx, nyy, nxy, ezz
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def deviatoric_rate(l00, l01, l10, l11):
-    """d′ (xx, yy, zz, xy) of plane strain (d_zz = 0) and the shear rate γ̇ = √(2 d′:d′)."""
-    dxy = 0.5 * (l01 + l10)
-    trd = l00 + l11
-    t3 = trd * THIRD
-    dpxx = l00 - t3
-    dpyy = l11 - t3
-    dpzz = -t3
-    gdot = fsqrt(2.0 * (dpxx * dpxx + dpyy * dpyy + dpzz * dpzz + 2.0 * dxy * dxy))
-    return dpxx, dpyy, dpzz, dxy, trd, gdot
-
-
 #: 1/3 (a multiplication instead of a division by 3 in the compiled kernels)
 THIRD = 1.0 / 3.0
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def fei_update(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, phi):
-    """Stress update of one material point.
-
-    In: velocity gradient L = ∇v, time step, elastic strain (xx, yy, xy, zz), volume ratio J,
-    small-grain concentration φ_s. Returns the new elastic strain (4), the Cauchy stress (4), and
-    (p_e, γ̇, I, S, c, ν): elastic pressure, shear rate, inertial number, segregation driver,
-    elastic wave speed, kinematic viscosity (for the time step).
-    """
-    return fei_update_i1(
-        prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, -flog(J), phi, linear_in_I(prm)
-    )
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def linear_in_I(prm):
-    """b = 1: μ_d = a I is linear in I and the update needs no powers."""
-    return prm[M_MU_B] == 1.0
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, linear):
-    """:func:`fei_update` with the volumetric elastic strain I₁ = −ln J given and ``linear`` =
-    (b == 1), μ_d linear in I.
-
-    Written without calls and with branches a compiled loop turns into selects, so that a loop
-    over points calling it with ``linear`` a constant True vectorises (SIMD, four points per AVX2
-    instruction): square roots are ``fsqrt`` (speculatable), the gas state is decided at the end
-    on values computed for every point, the ``driver`` choice is uniform over the loop. Only
-    b ≠ 1 needs powers (calls that do not vectorise). Four divisions (ρ_s f/J, 1/√I₁,
-    I's 1/√(ρ_s p_e), the yield cap's) and five square roots (γ̇, √I₁, √(ρ_s p_e), c, the
-    cap's √I₂) per point; the NumPy reference :func:`fei_update_np` states the same formulas
-    plainly.
-    """
-    A = prm[M_A]
-    C = prm[M_C]
-    rho_s = prm[M_RHO_S]
-    rho = prm[M_F] * rho_s / J
-    dpxx, dpyy, dpzz, dxy, trd, gdot = deviatoric_rate(l00, l01, l10, l11)
-
-    exx, eyy, exy, ezz = jaumann_predictor(exx, eyy, exy, ezz, l00, l01, l10, l11, dt)
-    t3 = (exx + eyy + ezz) * THIRD
-    e0xx = exx - t3
-    e0yy = eyy - t3
-    e0zz = ezz - t3
-    e0xy = exy
-    I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz + 2.0 * e0xy * e0xy)
-    # the yield cap √I₂ ≤ r_c I₁/q_φ: scale the deviator back onto it (s = 1 exactly below it)
-    cap = prm[M_CAPR] * I1
-    over = I2 > cap * cap
-    s = cap / fsqrt(I2) if over else 1.0
-    e0xx *= s
-    e0yy *= s
-    e0zz *= s
-    e0xy *= s
-    I2 = cap * cap if over else I2
-    third = I1 * THIRD
-
-    sq = fsqrt(I1)
-    pe = 2.5 * A * I1 * sq + 0.5 * C * I2 * (1.0 / sq)
-    G2 = C * sq  # 2G
-    # dissipative stress, division-free form
-    a = prm[M_MU_A] * prm[M_SDF]
-    dbar = phi * prm[M_DS] + (1.0 - phi) * prm[M_DL]
-    spe = fsqrt(rho_s * pe)
-    if linear:
-        eta = a * dbar * spe
-    else:
-        b = prm[M_MU_B]
-        g = max(gdot, prm[M_GFLOOR])
-        eta = a * dbar**b * rho_s ** (0.5 * b) * pe ** (1.0 - 0.5 * b) * g ** (b - 1.0)
-    # I = γ̇ d̄ / √(p_e/ρ_s) = γ̇ d̄ ρ_s / √(ρ_s p_e)
-    inertial = gdot * dbar * rho_s / spe if pe > 0.0 else 0.0
-    # c² = (3.75 A + 2 C) √I₁ / ρ
-    c = fsqrt(prm[M_CW] * sq * J * prm[M_IRHO0])
-    zeta = prm[M_ZETA] * rho * c * prm[M_H]
-    vol = zeta * trd
-    sxx = -pe + G2 * e0xx + 2.0 * eta * dpxx + vol
-    syy = -pe + G2 * e0yy + 2.0 * eta * dpyy + vol
-    sxy = G2 * e0xy + 2.0 * eta * dxy
-    szz = -pe + G2 * e0zz + 2.0 * eta * dpzz + vol
-
-    driver = int(prm[M_DRIVER])
-    if driver == DRIVER_A:
-        S = eta * gdot  # = μ_d(I) p_e = √J₂(σ^d)
-    elif driver == DRIVER_B:
-        S = prm[M_KAPPA_T] * rho * (gdot * dbar) ** 2
-    elif driver == DRIVER_P:
-        S = pe
-    else:
-        S = -2.0 * eta * dpyy
-    S *= prm[M_KAPPA]
-    nu = (eta + zeta) * J * prm[M_IRHO0]
-    if I1 <= 0.0:
-        # gas: no contacts, no stress; the volumetric strain keeps tracking the density (the
-        # contact values above, NaN for I₁ < 0, are discarded)
-        v = -third
-        return v, v, 0.0, v, 0.0, 0.0, 0.0, 0.0, 0.0, gdot, 0.0, 0.0, 0.0, 0.0
-    return (
-        e0xx - third,
-        e0yy - third,
-        e0xy,
-        e0zz - third,
-        sxx,
-        syy,
-        sxy,
-        szz,
-        pe,
-        gdot,
-        inertial,
-        S,
-        c,
-        nu,
-    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -195,7 +51,7 @@ def fei_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, l
 
 
 def jaumann_predictor_np(L, dt, eps):
-    """NumPy :func:`jaumann_predictor`: returns d = sym L and the in-plane trial strain (n, 2, 2)."""
+    """The Jaumann predictor ε* = ε + Δt (d + W ε − ε W) in plane strain: returns d = sym L and the in-plane trial strain (n, 2, 2)."""
     d = 0.5 * (L + np.swapaxes(L, 1, 2))
     w = 0.5 * (L - np.swapaxes(L, 1, 2))
     E2 = np.zeros_like(L)
@@ -205,7 +61,7 @@ def jaumann_predictor_np(L, dt, eps):
 
 
 def fei_update_np(prm, L, dt, eps, J, phi):
-    """NumPy reference of :func:`fei_update` for arrays of points.
+    """NumPy reference of the Fei et al. (2016) point update (plane strain) for arrays of points.
 
     L (n, 2, 2), eps (n, 4), J (n,), phi (n,). Returns (eps_new, sig, p, gdot, I, S, c, nu).
     """

@@ -13,13 +13,14 @@ Its homogeneous steady state is g_loc = √(p/ρ_s d̄²) (μ − μ_s)/(b μ) (
 √(ρ_s d̄²/p), singular at a free surface, uses p̃ = max(p, p_min), p_min the weight of
 ``material.fluidity_floor_layers`` grain layers (docs/model.md).
 
-Per material point and step (``ngf_update_i1``): the objective elastic predictor of the Fei model,
+Per material point and step (the engine's ``ngf_tensor``; its plane-strain NumPy reference
+``ngf_update_np``): the objective elastic predictor of the Fei model,
 the Jiang–Liu convexity guard √I₂ ≤ r_c I₁/q_φ on the trial state, then the implicit
 (unconditionally stable) return of the deviatoric elastic strain,
 ε⁰ ← ε⁰_tr p/(p + G Δt g) (that is τ = τ_tr p/(p + G Δt g), G = C√I₁/2 the shear modulus, p the
 Jiang–Liu pressure of the returned state: ``return_factor``), then the stress. There is no σ^d: the rate dependence is
-the fluidity's. The fluidity itself is advanced between steps by ``mpm.fluidity``: nonlocal
-diffusion on the MPM grid, then ``relax_local`` at the points (the exact solution of the local
+the fluidity's. The fluidity itself is advanced between steps by the engine's ``fluidity_step``:
+nonlocal diffusion on the MPM grid, then ``relax_logistic`` at the points (the exact solution of the local
 part for coefficients frozen over the interval). g = 0 where the material is disconnected
 (gas, p ≤ 0).
 """
@@ -31,8 +32,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .._fmath import fsqrt
-from .fei2016 import THIRD, deviatoric_rate, jaumann_predictor, jaumann_predictor_np
+from .fei2016 import jaumann_predictor_np
 from .params import (
     DRIVER_A,
     DRIVER_B,
@@ -40,14 +40,11 @@ from .params import (
     DRIVER_P,
     M_A,
     M_C,
-    M_CAPR,
-    M_CW,
     M_DL,
     M_DRIVER,
     M_DS,
     M_F,
     M_H,
-    M_IRHO0,
     M_KAPPA,
     M_KAPPA_G,
     M_KAPPA_T,
@@ -89,120 +86,6 @@ def return_factor(a0, a2, k):
         d = a2 * f * (3.0 * f - 2.0) + a0 + k
         f -= r / d
     return f
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def ngf_update_i1(prm, l00, l01, l10, l11, dt, exx, eyy, exy, ezz, J, I1, phi, gf):
-    """Stress update of one point with the fluidity flow rule; the contract of
-    :func:`segmpm.materials.fei2016.fei_update` (new elastic strain, stress, p_e, γ̇, I, S, c, ν)
-    with the fluidity ``gf`` (1/s) of the point as an extra input. ν = 0 (no viscous stress) unless
-    a bulk viscosity is set. Branch-free but for the driver (uniform over a loop), like
-    ``fei_update_i1``, so that the material pass vectorises."""
-    A = prm[M_A]
-    C = prm[M_C]
-    rho_s = prm[M_RHO_S]
-    rho = prm[M_F] * rho_s / J
-    dpxx, dpyy, dpzz, dxy, trd, gdot = deviatoric_rate(l00, l01, l10, l11)
-
-    exx, eyy, exy, ezz = jaumann_predictor(exx, eyy, exy, ezz, l00, l01, l10, l11, dt)
-    t3 = (exx + eyy + ezz) * THIRD
-    e0xx = exx - t3
-    e0yy = eyy - t3
-    e0zz = ezz - t3
-    e0xy = exy
-    I2 = 0.5 * (e0xx * e0xx + e0yy * e0yy + e0zz * e0zz + 2.0 * e0xy * e0xy)
-    sq = fsqrt(I1)
-    isq = 1.0 / sq
-    a0 = 2.5 * A * I1 * sq
-    k = 0.5 * C * sq * dt * gf
-    # the implicit return acts on the trial state as it is (a flowing point's trial state lies
-    # past the convexity limit by G Δt g/p, which is not small on a coarse step); only a trial
-    # state so far out that the return's cubic could have several roots (a2 > 2 (a0 + k), see
-    # return_factor) is first pulled back onto a2 = 2 (a0 + k)
-    lim = 4.0 * (a0 + k) * sq / C
-    over = I2 > lim
-    s = fsqrt(lim / I2) if over else 1.0
-    I2 = lim if over else I2
-    f = s * return_factor(a0, 0.5 * C * I2 * isq, k)
-    I2 *= (f / s) * (f / s)
-    # convexity guard of the energy on the returned state (not the yield criterion here: q_φ
-    # exceeds the flow's μ, so it acts on a static point loaded past it, or an overshoot)
-    cap = prm[M_CAPR] * I1
-    over = I2 > cap * cap
-    f *= cap / fsqrt(I2) if over else 1.0
-    I2 = cap * cap if over else I2
-    e0xx *= f
-    e0yy *= f
-    e0zz *= f
-    e0xy *= f
-    third = I1 * THIRD
-
-    pe = 2.5 * A * I1 * sq + 0.5 * C * I2 * isq
-    G2 = C * sq  # 2G
-    dbar = phi * prm[M_DS] + (1.0 - phi) * prm[M_DL]
-    spe = fsqrt(rho_s * pe)
-    inertial = gdot * dbar * rho_s / spe if pe > 0.0 else 0.0
-    c = fsqrt(prm[M_CW] * sq * J * prm[M_IRHO0])
-    zeta = prm[M_ZETA] * rho * c * prm[M_H]
-    vol = zeta * trd
-    sxx = -pe + G2 * e0xx + vol
-    syy = -pe + G2 * e0yy + vol
-    sxy = G2 * e0xy
-    szz = -pe + G2 * e0zz + vol
-
-    driver = int(prm[M_DRIVER])
-    if driver == DRIVER_A:
-        S = prm[M_NGF_B] * inertial * pe  # the rate-dependent part b I p of the local law
-    elif driver == DRIVER_B:
-        S = prm[M_KAPPA_T] * rho * (gdot * dbar) ** 2
-    elif driver == DRIVER_C:
-        S = 0.0  # no σ^d
-    elif driver == DRIVER_P:
-        S = pe
-    else:
-        S = prm[M_KAPPA_G] * rho * (gf * dbar) ** 2
-    S *= prm[M_KAPPA]
-    nu = zeta * J * prm[M_IRHO0]
-    if I1 <= 0.0:
-        v = -third
-        return v, v, 0.0, v, 0.0, 0.0, 0.0, 0.0, 0.0, gdot, 0.0, 0.0, 0.0, 0.0
-    return (
-        e0xx - third,
-        e0yy - third,
-        e0xy,
-        e0zz - third,
-        sxx,
-        syy,
-        sxy,
-        szz,
-        pe,
-        gdot,
-        inertial,
-        S,
-        c,
-        nu,
-    )
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def stress_ratio(sxx, syy, sxy, szz, p):
-    """μ = τ̄/p with τ̄ = √(½ s:s) of the deviator s of σ (plane strain, σ_zz included); 0 if
-    p ≤ 0."""
-    m = (sxx + syy + szz) * THIRD
-    a = sxx - m
-    b = syy - m
-    c = szz - m
-    tau = math.sqrt(0.5 * (a * a + b * b + c * c) + sxy * sxy)
-    return tau / p if p > 0.0 else 0.0
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def local_fluidity(mu, p, dbar, rho_s, mu_s, b, p_min=0.0):
-    """g_loc = √(p̃/(ρ_s d̄²)) (μ − μ_s)/(b μ), p̃ = max(p, p_min), for μ > μ_s and p > 0, else 0
-    (1/s)."""
-    if not (p > 0.0 and mu > mu_s):
-        return 0.0
-    return math.sqrt(max(p, p_min) / rho_s) / dbar * (mu - mu_s) / (b * mu)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -251,7 +134,7 @@ def relax_logistic(g, mu, p, dbar, dt, rho_s, mu_s, t0, b, p_floor):
 
 
 def ngf_update_np(prm, L, dt, eps, J, phi, gf):
-    """NumPy reference of :func:`ngf_update_i1` for arrays of points (I₁ = −ln J).
+    """NumPy reference of the nonlocal point update (plane strain) for arrays of points (I₁ = −ln J).
 
     L (n, 2, 2), eps (n, 4), J, phi, gf (n,). Returns (eps_new, sig, p, gdot, I, S, c, nu).
     """
@@ -331,7 +214,7 @@ def return_factor_np(a0, a2, k):
 
 
 def stress_ratio_np(sig: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """NumPy :func:`stress_ratio`: sig (4, n) as (xx, yy, xy, zz), p (n,)."""
+    """The stress ratio μ = √(½ s:s)/p (0 where p ≤ 0): sig (4, n) as (xx, yy, xy, zz), p (n,)."""
     sxx, syy, sxy, szz = sig
     m = (sxx + syy + szz) / 3.0
     tau = np.sqrt(0.5 * ((sxx - m) ** 2 + (syy - m) ** 2 + (szz - m) ** 2) + sxy**2)
@@ -340,7 +223,8 @@ def stress_ratio_np(sig: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 def local_fluidity_np(mu, p, dbar, rho_s, mu_s, b, p_min=0.0):
-    """NumPy :func:`local_fluidity`."""
+    """g_loc = √(p̃/(ρ_s d̄²)) (μ − μ_s)/(b μ), p̃ = max(p, p_min), for μ > μ_s and p > 0, else 0
+    (1/s)."""
     mu, p, dbar = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (mu, p, dbar)))
     ok = (p > 0) & (mu > mu_s)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -1,6 +1,7 @@
-"""The numerical record of the MPM solver (grid, boundaries, gravity, time-step control).
-
-One float64 array with named slots travels into the compiled loop; nothing is global.
+"""The codes shared with the engine (boundary kinds ``BC_*``, transfers ``TRANSFER_*``, loop
+status ``ST_*``) and the records of the plane-strain NumPy references: the grid record ``gp``
+(grid, boundaries, gravity, time-step control; slots ``G_*``) and the scalar state ``sc``
+(``S_*``), one float64 array each. The engine's own records are named (segmpm.engine.records).
 """
 
 from __future__ import annotations

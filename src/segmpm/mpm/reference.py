@@ -1,14 +1,18 @@
-"""Plain NumPy reference of one MPM step (APIC and AFLIP transfers), for testing the compiled loop.
+"""Plain NumPy reference of one plane-strain MPM step (APIC and AFLIP transfers), for testing
+the compiled loop of the engine (segmpm.engine) in 2-D.
 
-Slow and simple: every transfer is a vectorised gather or an ``np.add.at`` scatter. It follows
-the same algorithm as :func:`segmpm.mpm.step.advance` (P2G → grid update → G2P → USL stress
-update) so the two must agree to round-off.
+Slow and simple: every transfer is a vectorised gather or an ``np.add.at`` scatter, in the
+layout of segmpm.state (tensor rows xx, yy, xy, zz; the records ``gp``/``sc`` of
+segmpm.mpm.params). It follows the engine's algorithm (P2G → grid update → G2P → USL stress
+update), written independently of its kernels, so the two must agree to round-off; the tests
+translate the engine's records into this layout (tests/test_mpm_reference.py).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from ..engine.shape import bspline2_np
 from ..materials import KIND_FEI2016_NGF, material_update_np
 from ..materials.params import M_FLU_DT, M_KIND
 from .params import (
@@ -55,7 +59,6 @@ from .params import (
     TRANSFER_AFLIP,
     TRANSFER_APIC,
 )
-from .shape import bspline2_np
 
 
 def _plane_np(kind, mu, vn, vt):
@@ -80,7 +83,7 @@ def _plane_np(kind, mu, vn, vt):
 
 
 def apply_bc_np(gp, xn, yn, vx, vy):
-    """Vectorised :func:`segmpm.mpm.boundary.apply_bc`."""
+    """The boundary planes of the grid update on arrays of nodes (no-slip, slip, Coulomb friction)."""
     tol = 1e-9 * gp[G_H]
     vx, vy = vx.copy(), vy.copy()
     m = yn <= gp[G_BASE_Y] + tol

@@ -1,4 +1,5 @@
-"""Scenarios: build the initial material points, grid and boundaries from a configuration."""
+"""Scenarios in the plane-strain layout of the NumPy references: the initial material points,
+grid and boundaries from a configuration (the engine's own set-up is segmpm.engine.setup)."""
 
 from __future__ import annotations
 

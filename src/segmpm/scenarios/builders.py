@@ -2,7 +2,10 @@
 
 Material points sit on a regular lattice, ``particles_per_cell`` per cell and direction; the
 lattice spacing is stretched slightly so that the body fills its nominal extent exactly. Every
-builder returns a :class:`~segmpm.state.State` whose grid record (``gp``) carries the boundaries.
+builder returns a :class:`~segmpm.state.State` whose grid record (``gp``) carries the boundaries:
+the 2-D initial state in the layout of the NumPy reference step (segmpm.mpm.reference), which
+the tests compare the engine with. The engine builds its own records (segmpm.engine.setup) and
+shares the initial strain, gravity and wave-speed floor written here.
 """
 
 from __future__ import annotations
@@ -291,4 +294,3 @@ def attach_segregation(cfg: Config, st: State) -> None:
     y_hi = gp[G_Y0] + (gp[G_NY] - 1) * h
     st.cg = make_conc_grid(x_lo, x_hi, y_lo, y_hi, hc, periodic)
     st.seg_prm = pack_params(cfg, (gp[G_GX], gp[G_GY]))
-    st.allocate_work()
