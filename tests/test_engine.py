@@ -460,37 +460,6 @@ def _seg_state(dim, rng, extra=()):
     return cfg, st
 
 
-def test_concentration_step_2d_is_the_2d_reference_step():
-    """The engine's concentration step in 2-D is segregation.grid.concentration_step (the 2-D
-    step the closed-form segregation tests check, itself checked against the NumPy reference
-    segregation.reference): the same φ_s after one subcycle from the same points, driver and
-    shear-rate integrals (to round-off)."""
-    from segmpm.segregation import make_conc_grid
-    from segmpm.segregation.grid import allocate_work
-    from segmpm.segregation.grid import concentration_step as reference
-
-    rng = np.random.default_rng(2)
-    cfg, st = _seg_state(2, rng)
-    P = st.points
-    n = st.n
-    P.phi[:] = rng.uniform(0.2, 0.8, n)
-    P.s_int[:] = 1e-3 * (40.0 - 5e3 * P.x[1]) * (1 + 0.1 * rng.random(n))
-    P.g_int[:] = 1e-3 * 20.0
-    phi, s_int, g_int = P.phi.copy(), P.s_int.copy(), P.g_int.copy()
-    cg = st.seg.grid[0]
-    g2 = make_conc_grid(0.0, float(st.prm[0]["length_x"]), 0.0,
-                        float(st.prm[0]["origin"][1] + (st.prm[0]["nodes"][1] - 1) * 0.001),
-                        float(cg["hc"]), True)  # fmt: skip
-    assert (g2.ncx, g2.ncy) == tuple(cg["cells"][:2])
-    nsub = kernels(2).concentration_step(P, st.seg, 1e-3)
-    nref = reference(P.x[0].copy(), P.x[1].copy(), P.vol0, phi, s_int, g_int, 1e-3, g2,
-                      st.seg.prm, allocate_work(g2))  # fmt: skip
-    assert nsub == nref > 0
-    np.testing.assert_allclose(P.phi, phi, rtol=0, atol=1e-13)
-    assert np.abs(P.phi - 0.5).max() > 0  # something moved
-    assert not P.s_int.any() and not P.g_int.any()
-
-
 def test_concentration_step_3d_conserves_and_reduces_to_2d():
     """3-D: Σ V⁰ φ_s is conserved to round-off, 0 ≤ φ_s ≤ 1, and a z-uniform state gives the 2-D
     result on every z layer (no flux through the z-faces)."""

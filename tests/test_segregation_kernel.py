@@ -1,4 +1,5 @@
-"""Concentration kernel: agreement with the NumPy twin, conservation, boundedness, set-up.
+"""Concentration kernel (the engine's 2-D step, through segregation.grid.concentration_step):
+agreement with the NumPy twin, conservation, boundedness, set-up.
 
 docs/segregation.md §2 (k): Σ_p V⁰_p φ_p is conserved to round-off and 0 ≤ φ_p ≤ 1 always.
 """
@@ -54,7 +55,8 @@ def _random_case(rng: np.random.Generator, periodic: int, n: int = 500):
 @pytest.mark.parametrize("flux", ["sg", "upwind"])
 @pytest.mark.parametrize("periodic", [1, 0])
 def test_kernel_agrees_with_numpy_reference(model: str, flux: str, periodic: int) -> None:
-    """Compiled kernel and NumPy twin agree to ~1e-12 on random layouts and random S fields."""
+    """The engine's compiled step and the NumPy twin (segregation.reference) agree to ~1e-12 on
+    random layouts and random S fields."""
     # a seed that is the same in every process (hash() of a str is randomised per process)
     rng = np.random.default_rng(zlib.crc32(f"{model}-{flux}-{periodic}".encode()))
     px, py, vol0, phi, cg = _random_case(rng, periodic)
@@ -169,7 +171,8 @@ def test_make_conc_grid_geometry() -> None:
     with pytest.raises(ValueError, match="whole number"):
         make_conc_grid(0.0, 0.0121, 0.0, 0.01, 0.25e-3, True)
     work = allocate_work(cg)
-    assert all(w.shape == (48, 42) and w.dtype == np.float64 for w in work)
+    # the engine's scratch: its rows C_* on the grid's cells (one layer in z)
+    assert work.shape[1:] == (48, 42, 1) and work.dtype == np.float64
 
 
 def test_tent_weights_partition_of_unity() -> None:
@@ -200,34 +203,3 @@ def test_pack_params_from_config() -> None:
     )
     assert prm[P_GX] == g[0] and prm[P_GY] == g[1]
     assert prm[P_HC] == pytest.approx(0.5 * cfg.grid.cell_size)
-
-
-def test_kernel_is_callable_from_compiled_code() -> None:
-    """The engine's compiled loop calls the kernel with row views of its (2, N) position array."""
-    from numba import njit
-
-    @njit
-    def loop(x, vol0, phi, s_int, g_int, cg, prm, work, nsteps, dt):
-        total = 0
-        tseg = 0.0
-        for _ in range(nsteps):
-            for p in range(phi.shape[0]):
-                s_int[p] += 20.0 * x[1, p] * dt  # S = 20 Pa/m · y
-            tseg += dt
-            if tseg >= prm[P_DT_TARGET]:
-                total += concentration_step(
-                    x[0], x[1], vol0, phi, s_int, g_int, tseg, cg, prm, work
-                )
-                tseg = 0.0
-        return total
-
-    px, py, vol0 = strip_layout(0.004, 0.004, 0.25e-3)
-    x = np.ascontiguousarray(np.stack([px, py]))
-    cg = make_conc_grid(0.0, 0.004, 0.0, 0.005, 0.25e-3, 1)
-    prm = make_params(dt_target=1e-3)
-    phi = np.full(px.size, 0.5)
-    s_int, g_int = np.zeros_like(phi), np.zeros_like(phi)
-    n = loop(x, vol0, phi, s_int, g_int, cg, prm, allocate_work(cg), 1000, 1e-5)
-    assert n == 10
-    assert phi.min() < 0.5 < phi.max()
-    assert np.dot(vol0, phi) == pytest.approx(0.5 * vol0.sum(), rel=1e-13)

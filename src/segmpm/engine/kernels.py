@@ -1835,7 +1835,7 @@ NCORNER = 8 if D == 3 else 4
 @njit(cache=True, error_model="numpy", inline="always")
 def _corners(px, py, pz, cgr, act, ci, cw):
     """A point's cells ``ci`` and tent weights ``cw`` (Σ = 1), restricted to the active cells and
-    renormalised (segregation.grid.mp_weights, in D dimensions); the raw weights if none is
+    renormalised (docs/segregation.md §2, in D dimensions); the raw weights if none is
     active."""
     c = cgr[0]
     hc = c.hc
@@ -1880,7 +1880,7 @@ def concentration_step(P, seg, t_int):
     (i) points → cells with tent weights restricted to active cells (fill θ ≥ θ_min), (j) the
     closure's monotone face fluxes (x, y and, in 3-D, z faces) in explicit substeps, (k) the
     incremental bound-preserving mapping back. Conserves Σ V⁰ φ_s; keeps 0 ≤ φ_s ≤ 1. The same
-    algorithm as segregation.grid.concentration_step (the 2-D compiled reference). Returns the
+    algorithm as the NumPy twin segregation.reference.concentration_step_ref. Returns the
     number of substeps."""
     sp = seg.prm
     x = P.x

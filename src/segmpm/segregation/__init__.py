@@ -1,8 +1,9 @@
 """Species transport of the binary mixture: extra Eulerian concentration grid and closures.
 
-The compiled kernel :func:`concentration_step` (grid.py) is called by the engine's time loop once
-per subcycle; :mod:`closures` holds the flux closures and the parameter vector layout;
-:mod:`reference` is a plain NumPy twin of the kernel; :mod:`diagnostics` has the NumPy measures
+The compiled step is the engine's (``engine/kernels.py``, called by the time loop once per
+subcycle); :func:`concentration_step` (grid.py) runs its 2-D version on plain arrays;
+:mod:`closures` holds the flux closures and the parameter vector layout; :mod:`reference` is a
+plain NumPy twin of the step; :mod:`diagnostics` has the NumPy measures
 used between output chunks. Model and numerics: docs/segregation.md.
 """
 

@@ -171,7 +171,7 @@ def concentration_step_ref(
     raw = [wx0 * wy0, wx0 * wy1, wx1 * wy0, wx1 * wy1]
 
     # (i) MP → grid. Pass 1: the raw fill decides activity; pass 2: weights restricted to the
-    # active cells and renormalised (grid.mp_weights).
+    # active cells and renormalised (``_corners`` of the engine's step).
     vol_raw = np.zeros(ncell)
     for idx, w in zip(cells, [r / (raw[0] + raw[1] + raw[2] + raw[3]) for r in raw], strict=True):
         vol_raw += np.bincount(idx, weights=w * vol0, minlength=ncell)
