@@ -9,6 +9,8 @@
 #
 #   git worktree add /tmp/wt_pre 19ee395
 #   bash benchmarks/ab2d-2026-12-07.sh benchmarks/results/ab2d-2026-12-07.txt [ROUNDS] [END]
+#
+# PRESETS="chute_nonlocal" restricts the presets; PYTHON the interpreter, PRE the other checkout.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out=${1:?result file}
@@ -22,7 +24,8 @@ py=${PYTHON:-python}
   echo "# load: $(cat /proc/loadavg)"
   grep -E '^cpu ' /proc/stat | awk '{print "# steal jiffies at start:", $9}'
 } >> "$out.tmp"
-for preset in chute_seed chute_nonlocal; do
+presets=${PRESETS:-chute_seed chute_nonlocal}
+for preset in $presets; do
   for tag in head pre; do  # warm-up: compile (or load) both, not timed
     src=$PWD/src; [ "$tag" = pre ] && src=$pre/src
     NUMBA_NUM_THREADS=1 PYTHONPATH=$src $py benchmarks/ab2d_identity.py "$src" "$tag" 0.01 "$preset" > /dev/null
@@ -40,16 +43,23 @@ import json, statistics, sys
 import numpy as np
 rows = [json.loads(l) for l in open(sys.argv[1]) if l.startswith("{")]
 for preset in ("chute_seed", "chute_nonlocal"):
+    if not any(r["preset"] == preset for r in rows):
+        continue
     suffix = "" if preset == "chute_seed" else f"_{preset}"
     h = [r for r in rows if r["preset"] == preset and r["tag"] == "head"]
     p = [r for r in rows if r["preset"] == preset and r["tag"] == "pre"]
     ratios = [a["loop_s"] / b["loop_s"] for a, b in zip(h, p)]
+    cpu = [a["cpu_s"] / b["cpu_s"] for a, b in zip(h, p) if "cpu_s" in a and "cpu_s" in b]
     a, b = np.load(f"/tmp/ab/state_head{suffix}.npz"), np.load(f"/tmp/ab/state_pre{suffix}.npz")
     diff = {k: float(np.max(np.abs(a[k] - b[k])) / max(np.max(np.abs(b[k])), 1e-300)) for k in b.files}
     print(f"# {preset}: steps head {h[0]['steps']} pre {p[0]['steps']}; n {h[0]['n']}; "
           f"loop s head {statistics.median(r['loop_s'] for r in h):.3f} pre "
           f"{statistics.median(r['loop_s'] for r in p):.3f}; median within-round ratio head/pre "
           f"{statistics.median(ratios):.3f} (range {min(ratios):.3f}-{max(ratios):.3f}); "
+          + (f"CPU seconds: median ratio {statistics.median(cpu):.3f} (range {min(cpu):.3f}-"
+             f"{max(cpu):.3f}), best head / best pre {min(r['cpu_s'] for r in h) / min(r['cpu_s'] for r in p):.3f}; "
+             if cpu else "")
+          + f"best loop s head / best pre {min(r['loop_s'] for r in h) / min(r['loop_s'] for r in p):.3f}; "
           f"max relative state difference {json.dumps(diff)}")
 EOF
 mv "$out.tmp" "$out"

@@ -10,7 +10,8 @@ that calls can be interleaved A/B/A/B.
     python -c "import numpy as np; a, b = np.load('/tmp/ab/state_pre.npz'), np.load('/tmp/ab/state_head.npz'); print(all(np.array_equal(a[k], b[k]) for k in a.files))"
 
 (With a PRESET other than chute_seed the files are ``state_<tag>_<PRESET>.npz``.) Each call
-prints a JSON line (steps, loop seconds excluding the compile) and saves the final state to
+prints a JSON line (steps, loop seconds excluding the compile, and the process CPU seconds
+of the same stretch, which leave out the time a shared host steals) and saves the final state to
 /tmp/ab/state_<tag>.npz. Both checkouts may share one ``SEGMPM_CACHE_DIR``: the kernel cache is
 keyed by a hash of the sources.
 """
@@ -41,7 +42,9 @@ sim = Simulation(cfg, f"/tmp/ab/out_{tag}{suffix}")
 sim.advance_to(1e-4)  # compile
 w0 = sim.wall_time
 t0 = time.perf_counter()
+c0 = time.process_time()
 sim.advance_to(end)
+cpu = time.process_time() - c0
 el = time.perf_counter() - t0
 # the default engine's points (generic since 2026-12-07, σ stored xx, yy, zz, xy) or the former
 # engine's state (σ stored xx, yy, xy, zz): saved in the former order
@@ -57,6 +60,7 @@ print(
             "steps": sim.steps,
             "loop_s": sim.wall_time - w0,
             "wall_s": el,
+            "cpu_s": cpu,
             "n": sim.engine.n if generic else sim.state.n,
         }
     )

@@ -189,6 +189,15 @@ def _wrap(i, n):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _nz(n):
+    """The node count along z as the loops and flat indices see it: ``n`` in 3-D, a compile-time
+    1 in 2-D, so that the z loops and the z terms of the indices fold away."""
+    if D == 3:
+        return n
+    return 1
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def _z_axis(z, z0, ih):
     """The z factor of the stencil: B-spline in 3-D; one node of weight 1 in 2-D."""
     if D == 3:
@@ -337,7 +346,7 @@ def p2g(P, G, prm, remap):
     g[:] = 0.0
     ns = G.slab_start.shape[0] - 1
     ny = G.nodes.shape[1]
-    nz = G.nodes.shape[2]
+    nz = _nz(G.nodes.shape[2])
     nt = G.bounds.shape[0] - 1
     if remap and P.x_old.shape[1] != P.x.shape[1]:
         raise ValueError("p2g(remap=True) needs P.x_old for every point (grid.transfer = 'flip')")
@@ -578,7 +587,7 @@ def apply_planes(prm, xn, yn, zn, vx, vy, vz):
 def grid_update(G, prm, dt, ramp):
     """Nodal velocities v* = (m v + Δt (f + m g))/m, the 2-D sidewall Coulomb body force, then
     the boundary planes, on the new and (for AFLIP) the old velocity alike."""
-    nx, ny, nz = G.nodes.shape[0], G.nodes.shape[1], G.nodes.shape[2]
+    nx, ny, nz = G.nodes.shape[0], G.nodes.shape[1], _nz(G.nodes.shape[2])
     pr = prm[0]
     h = pr.h
     x0 = pr.origin[0]
@@ -799,7 +808,7 @@ def g2p(P, G, prm, dt, nslabs):
     (J later, from the smoothed L, with ``prm.dilatation``). MUSL (``TRANSFER_FLIP``): the
     velocity blend of AFLIP and the advection only; ``musl_gradient`` gives L and J."""
     ny = G.gv.shape[1]
-    nz = G.gv.shape[2]
+    nz = _nz(G.gv.shape[2])
     gvf = G.gv.reshape(G.gv.size)
     pr = prm[0]
     ih = 1.0 / pr.h
@@ -885,7 +894,7 @@ def g2p(P, G, prm, dt, nslabs):
 def momentum_to_velocity(G, prm):
     """MUSL remap: the nodal velocity m v / m of the re-scattered point momenta (``p2g`` with
     ``remap``), with the boundary planes, into the new-velocity lanes."""
-    nx, ny, nz = G.nodes.shape[0], G.nodes.shape[1], G.nodes.shape[2]
+    nx, ny, nz = G.nodes.shape[0], G.nodes.shape[1], _nz(G.nodes.shape[2])
     pr = prm[0]
     h = pr.h
     x0 = pr.origin[0]
@@ -918,7 +927,7 @@ def musl_gradient(P, G, prm, dt):
     positions before G2P (``P.x_old``), and J det(I + Δt L) (unless ``prm.dilatation``, which
     advances J from the smoothed L)."""
     ny = G.gv.shape[1]
-    nz = G.gv.shape[2]
+    nz = _nz(G.gv.shape[2])
     gvf = G.gv.reshape(G.gv.size)
     pr = prm[0]
     h = pr.h
@@ -1499,7 +1508,7 @@ def fold_fluidity(fw, planes):
     the sums of the material and its mirror image. Then, once every plane is folded, each node
     behind a plane takes its mirror's sums (so that two planes a few cells apart, or a corner,
     see the folded values)."""
-    nx, ny, nz = fw.shape[1], fw.shape[2], fw.shape[3]
+    nx, ny, nz = fw.shape[1], fw.shape[2], _nz(fw.shape[3])
     for r in range(planes.shape[0]):
         axis, kw, side = planes[r, 0], planes[r, 1], planes[r, 2]
         for i in range(nx):
@@ -1530,7 +1539,7 @@ def fold_fluidity(fw, planes):
 @njit(cache=True, error_model="numpy")
 def mirror_fluidity(fw, planes):
     """The nodal g behind the zero-flux planes: that of the mirror nodes (after a sub-step)."""
-    nx, ny, nz = fw.shape[1], fw.shape[2], fw.shape[3]
+    nx, ny, nz = fw.shape[1], fw.shape[2], _nz(fw.shape[3])
     for r in range(planes.shape[0]):
         axis, kw, side = planes[r, 0], planes[r, 1], planes[r, 2]
         for i in range(nx):
@@ -1586,7 +1595,7 @@ def _fluidity_nodes(fw, prm, mat, serial):
 def _fluidity_nodes_plane(fw, i, h, x0, y0, z0, closed, wall, at, m_full, coef, ds, dl):
     """The nodes of the x-plane ``i`` (``_fluidity_nodes``; ``wall``/``at`` the kinds and
     positions of the base, x- and z-planes); returns their max D/c."""
-    ny, nz = fw.shape[2], fw.shape[3]
+    ny, nz = fw.shape[2], _nz(fw.shape[3])
     tol = 1e-9 * h
     dmax = 0.0
     xn = x0 + i * h
@@ -1636,14 +1645,10 @@ def _flux(kind, diff, g, a, b, c, di, gi):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _laplacian_plane(fw, i, nx, ny, nz, periodic, ih2):
-    """The flux sum Σ_faces D_f (g_j − g_i)/h² of every active node of the x-plane i (a grid
-    one node wide and periodic in x, the column's, has no x-faces but to the node itself,
-    whose flux is zero: skipped)."""
-    kind = fw[W_KIND]
-    diff = fw[W_DIFF]
-    g = fw[W_G]
-    lap = fw[W_LAP]
+def _laplacian_plane(kind, diff, g, lap, i, nx, ny, nz, periodic, ih2):
+    """The flux sum Σ_faces D_f (g_j − g_i)/h² of every active node of the x-plane i into
+    ``lap`` (``kind``, ``diff``, ``g``: those fields of ``fw``; a grid one node wide and periodic
+    in x, the column's, has no x-faces but to the node itself, whose flux is zero: skipped)."""
     ilo = _wrap(i - 1, nx) if periodic else i - 1
     ihi = _wrap(i + 1, nx) if periodic else i + 1
     xfaces = not (periodic and nx == 1)
@@ -1673,12 +1678,12 @@ def _laplacian_plane(fw, i, nx, ny, nz, periodic, ih2):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _advance_plane(fw, i, ny, nz, ds):
+def _advance_plane(kind, g, lap, cap, i, ny, nz, ds):
     """g ← g + Δs (flux sum)/c on the active nodes of the x-plane i."""
     for j in range(ny):
         for k in range(nz):
-            if fw[W_KIND, i, j, k] == K_ACTIVE:
-                fw[W_G, i, j, k] += ds * fw[W_LAP, i, j, k] / fw[W_CAP, i, j, k]
+            if kind[i, j, k] == K_ACTIVE:
+                g[i, j, k] += ds * lap[i, j, k] / cap[i, j, k]
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
@@ -1692,26 +1697,34 @@ def diffuse(fw, prm, dt, dmax, planes, serial=False):
     if not (dmax > 0.0) or not (dt > 0.0):
         return 0
     pr = prm[0]
-    nx, ny, nz = fw.shape[1], fw.shape[2], fw.shape[3]
+    nx, ny, nz = fw.shape[1], fw.shape[2], _nz(fw.shape[3])
     ih2 = 1.0 / (pr.h * pr.h)
     periodic = pr.periodic_x != 0
     nsub = max(1, int(math.ceil(dt * 2.0 * D * dmax * ih2 / SAFETY)))
     ds = dt / nsub
+    # the fields once, not per plane and sub-step (a view costs its reference counting)
+    kind = fw[W_KIND]
+    diff = fw[W_DIFF]
+    g = fw[W_G]
+    lap = fw[W_LAP]
+    cap = fw[W_CAP]
+    images = planes.shape[0] > 0
     for _ in range(nsub):
         if nx == 1:
-            _laplacian_plane(fw, 0, nx, ny, nz, periodic, ih2)
-            _advance_plane(fw, 0, ny, nz, ds)
+            _laplacian_plane(kind, diff, g, lap, 0, nx, ny, nz, periodic, ih2)
+            _advance_plane(kind, g, lap, cap, 0, ny, nz, ds)
         elif serial:  # the same planes in order: the same result without the regions' cost
             for i in range(nx):
-                _laplacian_plane(fw, i, nx, ny, nz, periodic, ih2)
+                _laplacian_plane(kind, diff, g, lap, i, nx, ny, nz, periodic, ih2)
             for i in range(nx):
-                _advance_plane(fw, i, ny, nz, ds)
+                _advance_plane(kind, g, lap, cap, i, ny, nz, ds)
         else:
             for i in prange(nx):
-                _laplacian_plane(fw, i, nx, ny, nz, periodic, ih2)
+                _laplacian_plane(kind, diff, g, lap, i, nx, ny, nz, periodic, ih2)
             for i in prange(nx):
-                _advance_plane(fw, i, ny, nz, ds)
-        mirror_fluidity(fw, planes)
+                _advance_plane(kind, g, lap, cap, i, ny, nz, ds)
+        if images:
+            mirror_fluidity(fw, planes)
     return nsub
 
 

@@ -103,8 +103,8 @@ def relax_logistic(g, mu, p, dbar, dt, rho_s, mu_s, t0, b, p_floor):
     exactly for μ and
     p frozen (a logistic equation: g → g_loc for μ > μ_s, g → 0 otherwise, monotonically and
     without a step limit). Disconnected material (p ≤ 0) has g = 0. A point with μ > μ_s and
-    g = 0 starts from ``SEED_FRACTION`` g_loc. Scalar coefficients, so that the 2-D engine
-    (packed record) and the generic engine (named record) share it."""
+    g = 0 starts from ``SEED_FRACTION`` g_loc. Scalar coefficients: the engine's fluidity update
+    calls it, and :func:`relax_local` (which the tests check against an ODE solve) wraps it."""
     if not (p > 0.0):
         return 0.0
     if g != g:
