@@ -277,7 +277,10 @@ def main() -> None:
             u3z = np.nanmean(c3.velocity_x.sel(time=t).values[band], axis=0)
             z3 = c3.z.values
             row[name]["surface_u_across"] = {"z": z3.tolist(), "u": u3z.tolist()}
-            row[name]["wall_to_centre"] = float(u3z[0] / u3z[-1]) if u3z[-1] else None
+            # the cell nearest mid-width: the last one with the mirror plane, the middle one
+            # when the whole width is modelled
+            uc = u3z[int(np.argmin(np.abs(z3 - W / 2)))]
+            row[name]["wall_to_centre"] = float(u3z[0] / uc) if uc else None
             axes[1, col].plot(z3 * 1e3, u3z, "o-", label=name.replace("_", " "))
         axes[1, col].axhline(row["body_force_2d"]["surface_speed"], color="C0", ls=":",
                              label="2-D body force")  # fmt: skip
