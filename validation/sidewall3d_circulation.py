@@ -122,8 +122,8 @@ def main() -> None:
             _, ys, zs, uy, uz = m
             ax = axes[r_i, c_i]
             Z, Y = np.meshgrid(zs * 1e3, ys * 1e3)
-            ax.quiver(Z, Y, uz, uy, scale=2e-3, scale_units="x")
-            ax.set_title(f"{name}, t = {t:g} s", fontsize=8)
+            ax.quiver(Z, Y, uz, uy, scale=1e-4, scale_units="x")  # 10⁻⁴ m/s: 1 mm
+            ax.set_title(f"{name}, t = {t:g} s\n(v_z, v_y): 1 mm per 10⁻⁴ m/s", fontsize=8)
             ax.set_xlabel("z (mm)")
             ax.set_ylabel("y (mm)")
             ax.set_aspect("equal")
