@@ -10,7 +10,12 @@ symmetry plane.
     segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/circ_full_h1mm \\
         --set geometry.mirror=false --set time.end=5 \\
         --set output.profile_times=[0.0,0.5,1.0,2.0,3.0,4.0,5.0]
-    python validation/sidewall3d_circulation.py circ_mirror_h1mm circ_full_h1mm
+    segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/circ_ppc3_mirror_h1mm \
+        --set grid.particles_per_cell=3 --set grid.threads=2 --set time.end=5 \
+        --set output.profile_times=[0.0,0.5,1.0,2.0,3.0,4.0,5.0]
+    python validation/sidewall3d_circulation.py circ_mirror_h1mm circ_ppc3_mirror_h1mm circ_full_h1mm
+    python validation/sidewall3d.py --prefix nl_ --walls circ_mirror_h1mm \
+        --extra full_width=circ_full_h1mm ppc3=circ_ppc3_mirror_h1mm --tag circ --times 1 2 3 4 5
 
 Writes validation/results/sidewall3d/circulation.json and circulation.png. Per run and time:
 
