@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import tomllib
 import xml.etree.ElementTree as ET
 
 import matplotlib
@@ -43,7 +44,6 @@ import numpy as np  # noqa: E402
 
 HERE = pathlib.Path(__file__).parent
 RES = HERE / "results" / "sidewall3d"
-W = 0.022  # the wall spacing of the seed chute
 CELL = 0.001  # the cross-section's bins
 FILL = 0.5  # a bin is dense if it holds at least this share of the points of a bed bin
 
@@ -82,8 +82,9 @@ def cross_section(path: pathlib.Path, zmax: float):
 
 
 def summarise(run: pathlib.Path) -> dict:
-    cfg = (run / "config.toml").read_text()
-    full = "mirror = false" in cfg
+    geo = tomllib.loads((run / "config.toml").read_text())["geometry"]
+    W = geo["width"]
+    full = not geo["mirror"]
     zmax = W if full else W / 2
     rows = []
     maps = []
