@@ -60,6 +60,8 @@ def test_missing_file_exit_2(tmp_path, capsys):
         ("geometry.depth=-1", "geometry.depth"),
         ("material.stiffness_scale=0", "material.stiffness_scale"),
         ("time.cfl=2", "time.cfl"),
+        ("grid.particles_per_cell=[2,3,3]", "grid.particles_per_cell = [2, 3, 3] has 3 counts"),
+        ("grid.particles_per_cell=[2,7]", "less than or equal to 6"),
     ],
 )
 def test_bad_overrides_exit_2(capsys, override, fragment):

@@ -898,6 +898,37 @@ def test_3d_bar_period_converges_to_the_closed_form():
     assert 1.7 < order < 2.3, (errs, order)
 
 
+@pytest.mark.parametrize("dim, ppc", [(2, "[3, 2]"), (3, "[2, 3, 3]"), (3, "[3, 2, 1]")])
+def test_points_per_cell_per_axis_fill_the_layer(dim, ppc):
+    """``grid.particles_per_cell`` given per axis: n_a points per cell along axis a, on the
+    cell-centred lattice, whose volumes add up to the layer's (Σ m J = ρ φ × volume), and the
+    geostatic start of the chute carries the layer's weight at the base for every lattice."""
+    from segmpm.simulation import Simulation, build_count
+
+    cfg = _seed2d([f"grid.particles_per_cell={ppc}", f"geometry.dimension={dim}",
+                   "geometry.width=0.004", "geometry.mirror=false", "segregation.model='none'"])  # fmt: skip
+    n_axis = cfg.grid.points_per_axis(dim)
+    sim = Simulation(cfg)
+    P = sim.engine.points
+    g, h = cfg.geometry, cfg.grid.cell_size
+    extent = (g.length, g.depth, g.width)[:dim]
+    expect = [round(e / h * n) for e, n in zip(extent, n_axis, strict=True)]
+    assert P.x.shape[1] == math.prod(expect)
+    # the thread policy's estimate (before building) is off by less than one point row
+    assert abs(build_count(cfg) - P.x.shape[1]) < P.x.shape[1] / expect[1]
+    for a in range(dim):  # the distinct coordinates along each axis: spacing extent / count
+        u = np.unique(np.round(P.x[a] / h * 1e9))
+        assert u.size == expect[a]
+        np.testing.assert_allclose(np.diff(np.sort(u)) * 1e-9 * h, extent[a] / expect[a], rtol=1e-6)
+    volume = math.prod(extent)
+    rho = cfg.material.solid_fraction * cfg.material.grain_density
+    # the points start compressed to the geostatic J: their present volumes fill the layer
+    assert (P.mass * P.J).sum() == pytest.approx(rho * volume, rel=1e-12)
+    # geostatic σ_yy = −ρ g cos θ (H − y) at every point of every lattice
+    gy = 9.81 * math.cos(math.radians(g.slope_deg))
+    np.testing.assert_allclose(P.sig[1], -rho * gy * (g.depth - P.x[1]), rtol=1e-9)
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_generic_box_free_fall_is_exact(dim):
     """A stress-free box in free fall, moving along x: symplectic Euler gives v = −g t n and

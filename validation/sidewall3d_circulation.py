@@ -14,10 +14,15 @@ symmetry plane.
         --set grid.particles_per_cell=3 --set grid.threads=2 --set time.end=5 \
         --set output.profile_times=[0.0,0.5,1.0,2.0,3.0,4.0,5.0]
     python validation/sidewall3d_circulation.py circ_mirror_h1mm circ_ppc3_mirror_h1mm circ_full_h1mm
+    segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/circ_ppc233_mirror_h1mm \
+        --set grid.particles_per_cell=[2,3,3] --set grid.threads=2 --set time.end=5 \
+        --set output.profile_times=[0.0,0.5,1.0,2.0,3.0,4.0,5.0]
+    python validation/sidewall3d_circulation.py circ_ppc233_mirror_h1mm --tag ppc233
     python validation/sidewall3d.py --prefix nl_ --walls circ_mirror_h1mm \
         --extra full_width=circ_full_h1mm ppc3=circ_ppc3_mirror_h1mm --tag circ --times 1 2 3 4 5
 
-Writes validation/results/sidewall3d/circulation.json and circulation.png. Per run and time:
+Writes validation/results/sidewall3d/circulation.json and circulation.png (circulation_TAG.* with
+``--tag``). Per run and time:
 
 * ``vy_wall``, ``vy_mid``: the mean v_y of the dense layer (cells holding at least half the
   points of a cell of the bed, the top 2 mm left out) in the cells within 2 mm of a wall and within 2 mm of mid-width;
@@ -112,7 +117,10 @@ def summarise(run: pathlib.Path) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("runs", nargs="+", help="run directories under validation/results/sidewall3d")
+    ap.add_argument("--tag", default="", help="write circulation_TAG.json/png (VTK fields are "
+                    "not committed, so a later run is summarised apart from the earlier ones)")
     args = ap.parse_args()
+    stem = f"circulation_{args.tag}" if args.tag else "circulation"
     out = {}
     res = {r: summarise(RES / r) for r in args.runs}
     times = sorted({row["time"] for v in res.values() for row in v["rows"] if row["time"] > 0})
@@ -134,8 +142,8 @@ def main() -> None:
             ax.set_ylabel("y (mm)")
             ax.set_aspect("equal")
     fig.tight_layout()
-    fig.savefig(RES / "circulation.png", dpi=110)
-    (RES / "circulation.json").write_text(json.dumps(out, indent=1))
+    fig.savefig(RES / f"{stem}.png", dpi=110)
+    (RES / f"{stem}.json").write_text(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":

@@ -46,9 +46,9 @@ def _config_for(n_points: int, variant: str = "local"):
     quiet = ["output.progress=false", "output.fields=false", *extra]
     base = validate_data(apply_overrides(data, quiet))
     h = base.grid.cell_size
-    ppc = base.grid.particles_per_cell
-    rows = round(base.geometry.depth / (h / ppc))
-    cells = max(2, round(n_points / rows / ppc))
+    px, py = base.grid.points_per_axis(2)
+    rows = round(base.geometry.depth / (h / py))
+    cells = max(2, round(n_points / rows / px))
     # the production configuration: the concentration subcycle every segregation.dt = 1e-3 s,
     # i.e. about every 70 steps, so a few hundred timed steps include several of them
     return validate_data(apply_overrides(data, [*quiet, f"geometry.length={cells * h!r}"]))

@@ -82,7 +82,7 @@ def column_elements(cfg: Config) -> tuple[np.ndarray, np.ndarray]:
     """The column's node heights (N + 1, from the base) and element centres (N): N =
     depth / (h / n_ppc) elements of equal height, at least two."""
     g = cfg.geometry
-    ne = max(2, round(g.depth / (cfg.grid.cell_size / cfg.grid.particles_per_cell)))
+    ne = max(2, round(g.depth / cfg.grid.point_spacing(g.dimension)[1]))
     y_nodes = np.arange(ne + 1) * (g.depth / ne)
     return y_nodes, 0.5 * (y_nodes[:-1] + y_nodes[1:])
 

@@ -32,6 +32,10 @@ class ConfigError(ValueError):
     """Invalid configuration. ``str(err)`` is a one-paragraph message naming key, value and range."""
 
 
+#: material points per cell along one axis.
+PointsPerCell = Annotated[int, Field(ge=1, le=6)]
+
+
 class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
@@ -77,8 +81,9 @@ class GridConfig(_Section):
 
     #: background cell size h, m.
     cell_size: Annotated[float, Field(gt=0, le=10, allow_inf_nan=False)] = 5.0e-4
-    #: material points per cell and direction (2 → 4 points per cell, spacing h/2).
-    particles_per_cell: Annotated[int, Field(ge=1, le=6)] = 2
+    #: material points per cell and direction (2 → 4 points per cell in 2-D, spacing h/2), or one
+    #: count per axis, [x, y] in 2-D and [x, y, z] in 3-D (e.g. [2, 3, 3]: docs/model.md §2).
+    particles_per_cell: PointsPerCell | list[PointsPerCell] = 2
     #: shape functions: quadratic B-splines.
     shape: Literal["bspline2"] = "bspline2"
     #: particle–grid transfer: "aflip" (APIC affine momentum with a FLIP velocity update, the
@@ -113,6 +118,15 @@ class GridConfig(_Section):
     #: may use that no other process keeps busy; segmpm.threads) or a count (0 = numba's pool).
     #: Results do not depend on it.
     threads: Annotated[int, Field(ge=0, le=256)] | Literal["auto"] = "auto"
+
+    def points_per_axis(self, dim: int) -> tuple[int, ...]:
+        """The points per cell along each of the ``dim`` axes (x, y[, z])."""
+        p = self.particles_per_cell
+        return (p,) * dim if isinstance(p, int) else tuple(p)
+
+    def point_spacing(self, dim: int) -> tuple[float, ...]:
+        """The lattice spacing of the material points along each axis, h / n_a."""
+        return tuple(self.cell_size / n for n in self.points_per_axis(dim))
 
 
 class MaterialConfig(_Section):
@@ -358,24 +372,31 @@ class Config(_Section):
                     f"geometry.length = {g.length} must be a whole number (≥ 2) of grid.cell_size = {h} "
                     f"cells for the periodic direction (got {n:.6g} cells)"
                 )
-        if kind in ("chute", "box", "bar") and g.depth < h / self.grid.particles_per_cell:
+        ppc = self.grid.particles_per_cell
+        if not isinstance(ppc, int) and len(ppc) != g.dimension:
+            raise ValueError(
+                f"grid.particles_per_cell = {ppc} has {len(ppc)} counts for geometry.dimension = "
+                f"{g.dimension}; allowed: one integer 1-6, or one per axis ([x, y] in 2-D, "
+                "[x, y, z] in 3-D)"
+            )
+        sx, sy = self.grid.point_spacing(g.dimension)[:2]
+        if kind in ("chute", "box", "bar") and g.depth < sy:
             raise ValueError(
                 f"geometry.depth = {g.depth} is thinner than one material-point spacing "
-                f"({h / self.grid.particles_per_cell}); allowed: depth ≥ cell_size/particles_per_cell"
+                f"({sy}); allowed: depth ≥ cell_size/particles_per_cell (along y)"
             )
         if kind == "collapse" and g.column_width > g.length:
             raise ValueError(
                 f"geometry.column_width = {g.column_width} must not exceed geometry.length = {g.length}"
             )
         # Memory guard: estimate the sizes before anything is allocated.
-        ppc = self.grid.particles_per_cell
         if kind == "collapse":
             area = g.column_width * g.column_height
             extent_x, extent_y = g.length, g.column_height * (1 + g.headroom)
         else:
             area = g.length * g.depth
             extent_x, extent_y = g.length, g.depth * (1 + g.headroom)
-        n_particles = area / (h / ppc) ** 2
+        n_particles = area / (sx * sy)
         n_nodes = (extent_x / h + 5) * (extent_y / h + 5)
         if n_particles > MAX_PARTICLES or n_nodes > MAX_NODES:
             if kind == "collapse":
@@ -461,6 +482,7 @@ class Config(_Section):
         """What the 3-D engine supports today (docs/architecture.md, "Status")."""
         g = self.geometry
         h = self.grid.cell_size
+        v = math.prod(self.grid.point_spacing(3))  # the volume of one point
         self._check_generic("geometry.dimension = 3")
         if self.scenario.kind == "chute":
             wm = g.width / 2 if g.mirror else g.width
@@ -470,12 +492,11 @@ class Config(_Section):
                     f"geometry.width = {g.width} (mirror = {g.mirror}) must give a whole number "
                     f"(≥ 2) of grid.cell_size = {h} cells across the modelled width (got {n:.6g})"
                 )
-            pts = g.length * g.depth * wm / (h / self.grid.particles_per_cell) ** 3
+            pts = g.length * g.depth * wm / v
         elif self.scenario.kind in ("box", "bar"):
-            pts = g.length * g.depth * g.width / (h / self.grid.particles_per_cell) ** 3
+            pts = g.length * g.depth * g.width / v
         else:
-            pts = 0.785 * g.column_width**2 * g.column_height / (
-                h / self.grid.particles_per_cell) ** 3  # fmt: skip
+            pts = 0.785 * g.column_width**2 * g.column_height / v
             if g.column_width > g.length:
                 raise ValueError(
                     f"geometry.column_width = {g.column_width} (the column radius in 3-D) must "

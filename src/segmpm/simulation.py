@@ -744,16 +744,17 @@ class Simulation:
 def build_count(cfg: Config) -> int:
     """An estimate of the number of points (for the thread policy, before building)."""
     g = cfg.geometry
-    s = cfg.grid.cell_size / cfg.grid.particles_per_cell
+    sp = cfg.grid.point_spacing(g.dimension)
     if cfg.scenario.solver == "column":
-        return max(2, round(g.depth / s))
+        return max(2, round(g.depth / sp[1]))
+    cell = math.prod(sp)  # the area (2-D) or volume (3-D) of one point
     if cfg.scenario.kind == "chute":
         w = g.width / 2 if g.mirror else g.width
-        return int(g.length * g.depth * (w if g.dimension == 3 else s) / s**3)
+        return int(g.length * g.depth * (w if g.dimension == 3 else 1) / cell)
     if cfg.scenario.kind in ("box", "bar"):
-        return int(g.length * g.depth * (g.width if g.dimension == 3 else s) / s**3)
+        return int(g.length * g.depth * (g.width if g.dimension == 3 else 1) / cell)
     r = g.column_width
-    return int((0.785 * r * r if g.dimension == 3 else r * s) * g.column_height / s**3)
+    return int((0.785 * r * r if g.dimension == 3 else r) * g.column_height / cell)
 
 
 def _estimate_message(n_steps: int, dt: float, n: int, dim: int, wall: float, steps: int) -> str:

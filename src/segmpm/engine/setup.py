@@ -79,13 +79,15 @@ class EngineState:
         return out
 
 
-def lattice(lo: tuple[float, ...], hi: tuple[float, ...], spacing: float):
-    """Cell-centred lattice filling the box [lo, hi] (2 or 3 axes); returns (x (D, N), volume
-    per point). Points are ordered with y slowest, so that they come sorted by height."""
+def lattice(lo: tuple[float, ...], hi: tuple[float, ...], spacing: float | tuple[float, ...]):
+    """Cell-centred lattice filling the box [lo, hi] (2 or 3 axes) at about ``spacing`` (one
+    value, or one per axis); returns (x (D, N), volume per point). Points are ordered with y
+    slowest, so that they come sorted by height."""
     axes = []
     vol = 1.0
-    for a, b in zip(lo, hi, strict=True):
-        n = max(1, round((b - a) / spacing))
+    spacings = (spacing,) * len(lo) if isinstance(spacing, float | int) else spacing
+    for a, b, ds in zip(lo, hi, spacings, strict=True):
+        n = max(1, round((b - a) / ds))
         s = (b - a) / n
         axes.append(a + (np.arange(n) + 0.5) * s)
         vol *= s
@@ -151,7 +153,7 @@ def build_chute(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray]:
     g = cfg.geometry
     h = cfg.grid.cell_size
     nx = round(g.length / h)
-    s = h / cfg.grid.particles_per_cell
+    s = cfg.grid.point_spacing(dim)
     ny = _ny(g.depth * (1 + g.headroom), h)
     if dim == 2:
         x, vol = lattice((0.0, 0.0), (nx * h, g.depth), s)
@@ -178,7 +180,7 @@ def build_chute(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray]:
 def build_collapse(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray]:
     g = cfg.geometry
     h = cfg.grid.cell_size
-    s = h / cfg.grid.particles_per_cell
+    s = cfg.grid.point_spacing(dim)
     nxc = int(math.ceil(g.length / h))
     ny = _ny(g.column_height * (1 + g.headroom), h)
     walls = PLANE_CODES[cfg.boundary.walls]
@@ -210,7 +212,7 @@ def build_box(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray]:
     g = cfg.geometry
     h = cfg.grid.cell_size
     nx = round(g.length / h)
-    s = h / cfg.grid.particles_per_cell
+    s = cfg.grid.point_spacing(dim)
     bottom = g.headroom * g.depth
     ny = _ny(g.depth * (1 + 2 * g.headroom), h)
     if dim == 2:
@@ -232,7 +234,7 @@ def build_bar(cfg: Config, dim: int) -> tuple[np.ndarray, float, np.ndarray]:
     × ``geometry.width``, free on every side."""
     g = cfg.geometry
     h = cfg.grid.cell_size
-    s = h / cfg.grid.particles_per_cell
+    s = cfg.grid.point_spacing(dim)
     nxc = int(math.ceil(g.length * (1 + g.headroom) / h))
     origin = (-GHOST * h, -GHOST * h, -GHOST * h if dim == 3 else 0.0)
     ny = _ny(g.depth, h)

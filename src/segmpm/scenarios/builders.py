@@ -68,10 +68,14 @@ def gravity_vector(cfg: Config) -> tuple[float, float]:
     return cfg.time.gravity * math.sin(th), -cfg.time.gravity * math.cos(th)
 
 
-def lattice(x_lo: float, x_hi: float, y_lo: float, y_hi: float, spacing: float):
-    """Cell-centred lattice filling [x_lo, x_hi] × [y_lo, y_hi]; returns (x (2, N), area per point)."""
-    nx = max(1, round((x_hi - x_lo) / spacing))
-    ny = max(1, round((y_hi - y_lo) / spacing))
+def lattice(
+    x_lo: float, x_hi: float, y_lo: float, y_hi: float, spacing: float | tuple[float, float]
+):
+    """Cell-centred lattice filling [x_lo, x_hi] × [y_lo, y_hi] at about ``spacing`` (one value
+    or (x, y)); returns (x (2, N), area per point)."""
+    dx, dy = (spacing, spacing) if isinstance(spacing, float | int) else spacing
+    nx = max(1, round((x_hi - x_lo) / dx))
+    ny = max(1, round((y_hi - y_lo) / dy))
     sx = (x_hi - x_lo) / nx
     sy = (y_hi - y_lo) / ny
     xs = x_lo + (np.arange(nx) + 0.5) * sx
@@ -191,7 +195,7 @@ def build_chute(cfg: Config) -> State:
     g = cfg.geometry
     h = cfg.grid.cell_size
     nx = round(g.length / h)
-    spacing = h / cfg.grid.particles_per_cell
+    spacing = cfg.grid.point_spacing(2)
     x, area = lattice(0.0, nx * h, 0.0, g.depth, spacing)
     gp = grid_record(
         cfg, x0=0.0, nx=nx, y0=-GHOST * h, ny=_ny(g.depth * (1 + g.headroom), h),
@@ -209,7 +213,7 @@ def build_box(cfg: Config) -> State:
     g = cfg.geometry
     h = cfg.grid.cell_size
     nx = round(g.length / h)
-    spacing = h / cfg.grid.particles_per_cell
+    spacing = cfg.grid.point_spacing(2)
     bottom = g.headroom * g.depth
     x, area = lattice(0.0, nx * h, bottom, bottom + g.depth, spacing)
     gp = grid_record(
@@ -231,7 +235,7 @@ def build_bar(cfg: Config) -> State:
     """
     g = cfg.geometry
     h = cfg.grid.cell_size
-    spacing = h / cfg.grid.particles_per_cell
+    spacing = cfg.grid.point_spacing(2)
     L = g.length
     x, area = lattice(0.0, L, 0.0, g.depth, spacing)
     nxc = int(math.ceil(L * (1 + g.headroom) / h))
@@ -252,7 +256,7 @@ def build_collapse(cfg: Config) -> State:
     """
     g = cfg.geometry
     h = cfg.grid.cell_size
-    spacing = h / cfg.grid.particles_per_cell
+    spacing = cfg.grid.point_spacing(2)
     x, area = lattice(0.0, g.column_width, 0.0, g.column_height, spacing)
     nxc = int(math.ceil(g.length / h))
     gp = grid_record(
