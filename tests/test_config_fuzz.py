@@ -59,6 +59,8 @@ def _bounds(info) -> dict[str, float]:
     meta = list(info.metadata)
     if _kind(info) == "int_or_literal":
         meta = [m for f in get_args(_int_part(info))[1:] for m in getattr(f, "metadata", [f])]
+    if _kind(info) == "int_or_int_list":
+        meta = [m for f in get_args(get_args(info.annotation)[0])[1:] for m in f.metadata]
     for m in meta:
         for attr in ("gt", "ge", "lt", "le"):
             v = getattr(m, attr, None)
@@ -85,6 +87,8 @@ def _kind(info) -> str:
         args = get_args(ann)
         if len(args) == 2 and get_origin(args[1]) is Literal and get_origin(args[0]) is Annotated:
             return "int_or_literal"
+        if len(args) == 2 and get_origin(args[1]) is list and get_args(args[1])[0] == args[0]:
+            return "int_or_int_list"  # grid.particles_per_cell: one count or one per axis
     raise AssertionError(f"untested field type {ann}")
 
 
@@ -211,6 +215,9 @@ def in_range(info) -> st.SearchStrategy:
         return st.integers(b["ge"], b["le"]) | st.sampled_from(words)
     if kind == "bool":
         return st.booleans()
+    if kind == "int_or_int_list":  # one count, or one per axis of the default 2-D
+        n = st.integers(b["ge"], b["le"])
+        return n | st.lists(n, min_size=2, max_size=2)
     if kind == "int":
         return st.integers(b.get("ge", -(2**40)), b.get("le", 2**40))
     if kind == "str":
@@ -235,7 +242,8 @@ def valid_data(draw) -> dict[str, Any]:
             data.setdefault(s, {})[k] = draw(in_range(info))
     kind = draw(st.sampled_from(["chute", "collapse", "bar", "box"]))
     h = draw(st.floats(1e-4, 1e-2))
-    ppc = draw(st.integers(1, 6))
+    # one count for both axes, or [x, y]
+    ppc = draw(st.integers(1, 6) | st.lists(st.integers(1, 6), min_size=2, max_size=2))
     length = draw(st.integers(3, 40)) * h
     data.setdefault("scenario", {})["kind"] = kind
     data.setdefault("geometry", {})["dimension"] = 2
@@ -338,6 +346,19 @@ def out_of_range(info) -> st.SearchStrategy:
             | st.floats(allow_nan=False, allow_infinity=False).filter(lambda x: x != int(x))
             | LETTERS.filter(lambda s: s not in words)
             | containers
+        )
+    if kind == "int_or_int_list":
+        bad = st.integers(max_value=b["ge"] - 1) | st.integers(min_value=b["le"] + 1)
+        good = st.integers(b["ge"], b["le"])
+        return (
+            bad
+            | st.floats(allow_nan=False, allow_infinity=False).filter(lambda x: x != int(x))
+            | LETTERS
+            | st.lists(good, max_size=1)  # the wrong number of axes
+            | st.lists(good, min_size=4, max_size=5)
+            | st.tuples(good, bad).map(list)
+            | st.lists(LETTERS, min_size=2, max_size=2)
+            | st.dictionaries(LETTERS, st.integers(), min_size=1, max_size=2)
         )
     if kind == "float_list":
         return (
@@ -464,7 +485,11 @@ def inconsistent(draw):
         return data, "geometry.length"
     if case == "depth":
         data["scenario"]["kind"] = draw(st.sampled_from(["chute", "box", "bar"]))
-        g["depth"] = grid["cell_size"] / grid["particles_per_cell"] * draw(st.floats(1e-3, 0.99))
+        ppc_y = draw(st.integers(1, 6))
+        grid["particles_per_cell"] = draw(
+            st.just(ppc_y) | st.builds(lambda x: [x, ppc_y], st.integers(1, 6))
+        )
+        g["depth"] = grid["cell_size"] / ppc_y * draw(st.floats(1e-3, 0.99))
         return data, "geometry.depth"
     if case == "column":
         data["scenario"]["kind"] = "collapse"
@@ -649,5 +674,6 @@ def test_fixed_defect_control_characters_do_not_round_trip(text):
 def test_strategies_cover_every_field_type():
     # guard for the strategies above: every field type is one the generators know
     assert {_kind(i) for i in FIELDS.values()} <= {"literal", "bool", "int", "float", "str",
-                                                   "float_list", "int_or_literal"}  # fmt: skip
+                                                   "float_list", "int_or_literal",
+                                                   "int_or_int_list"}  # fmt: skip
     json.dumps(validate_data({}).to_dict())
