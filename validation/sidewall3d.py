@@ -1,4 +1,4 @@
-"""The sidewall question (docs/validation.md §4): is the 2-D Coulomb body force an adequate reduction
+r"""The sidewall question (docs/validation.md §4): is the 2-D Coulomb body force an adequate reduction
 of real sidewalls? Compares, on the seed chute (26°, 37.3 mm, walls 22 mm apart, μ_w = 0.3),
 
 * the 2-D model with the body force −(2 μ_w p / W) v/|v| (run on the former plane-strain
@@ -11,7 +11,7 @@ with the same local model (chute_seed, no segregation step in either continuum r
 written by
 
     segmpm run chute_seed --out validation/results/sidewall3d/body2d_h1mm <COMMON>
-    segmpm run chute_seed --out validation/results/sidewall3d/walls3d_h1mm <COMMON> \\
+    segmpm run chute_seed --out validation/results/sidewall3d/walls3d_h1mm <COMMON> \
         --set geometry.dimension=3 --set geometry.mirror=true
 
 with COMMON = --set material.rheology='"local"' --set segregation.model='"none"'

@@ -1,14 +1,14 @@
-"""The secondary circulation of the 3-D seed chute's cross-section (docs/validation.md §4, "Known
+r"""The secondary circulation of the 3-D seed chute's cross-section (docs/validation.md §4, "Known
 defect"): the point velocities v_y (normal to the base) and v_z (across the channel) of the VTK
 fields, averaged over x and over 1 mm × 1 mm cells of the (y, z) cross-section, at every output
 time of each run. Compares a run with the mirror plane at mid-width with one that models the whole
 width, so that one can tell whether the circulation (and the deceleration it feeds) comes from the
 symmetry plane.
 
-    segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/circ_mirror_h1mm \\
+    segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/circ_mirror_h1mm \
         --set time.end=5 --set output.profile_times=[0.0,0.5,1.0,2.0,3.0,4.0,5.0]
-    segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/circ_full_h1mm \\
-        --set geometry.mirror=false --set time.end=5 \\
+    segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/circ_full_h1mm \
+        --set geometry.mirror=false --set time.end=5 \
         --set output.profile_times=[0.0,0.5,1.0,2.0,3.0,4.0,5.0]
     segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/circ_ppc3_mirror_h1mm \
         --set grid.particles_per_cell=3 --set grid.threads=2 --set time.end=5 \
