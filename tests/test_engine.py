@@ -329,6 +329,51 @@ def test_volumetric_smoothing_removes_the_row_mode_and_keeps_linear_fields():
     np.testing.assert_allclose(tr[interior], 3.0 - 200.0 * y[interior], rtol=0, atol=1e-13)
 
 
+@pytest.mark.parametrize("n_y, null", [(2, True), (3, False)])
+def test_row_stress_is_a_null_mode_at_2_points_per_cell_only(n_y, null):
+    """A normal stress σ_yy = ±s alternating from one point row to the next (in y) exerts no
+    force on any node whose stencil is full at 2 points per cell along y: the quadratic
+    B-spline's w′ at the rows ±¼, ±¾, ±5⁄4 h from a node gives −½ + ¾ − ¼ = 0 in alternating
+    sum. At 3 per cell (rows ±⅙, ±½, ±⅚, ±7⁄6 h) the same sum is 2(−⅓ + 1 − ⅔ + ⅓) = ⅔, so each
+    interior node feels |f_y| = ⅔ s V n_x n_z / h: the grid resists the mode (docs/model.md §2,
+    "Points per cell per axis")."""
+    from segmpm.engine.helpers import counting_sort
+
+    cfg = _cfg(["geometry.depth=0.010", "geometry.width=0.004",
+                f"grid.particles_per_cell=[2, {n_y}, 2]"])  # fmt: skip
+    st, k = build(cfg, 3), kernels(3)
+    P, G, prm = st.points, st.grid, st.prm[0]
+    h, s = prm["h"], 100.0
+    P.v[:] = 0.0
+    P.C[:] = 0.0
+    P.J[:] = 1.0
+    P.vol0[:] = P.vol0.mean()  # one volume V (the geostatic J varies it by < 1e-3)
+    row = np.rint(P.x[1] / (h / n_y) - 0.5).astype(int)
+
+    def force():
+        k.slab_index(P, st.prm, G.slab_start.shape[0] - 1)
+        counting_sort(P.cursor, G.slab_start, G.order, 1)
+        k.p2g(P, G, st.prm, False)
+        return G.nodes[..., k.F_F + 1].copy()
+
+    P.sig[:] = 0.0
+    f0 = force()
+    P.sig[1] = s * (-1.0) ** row
+    fy = force() - f0
+    # nodes whose stencils lie inside the layer in y and z (2 cells from the base, the surface
+    # and the open sides of the box); x is periodic
+    y = prm["origin"][1] + h * np.arange(G.nodes.shape[1])
+    z = prm["origin"][2] + h * np.arange(G.nodes.shape[2])
+    iy = (y >= 2 * h) & (y <= 0.010 - 2 * h)
+    iz = (z >= 2 * h) & (z <= 0.004 - 2 * h)
+    inner = np.abs(fy[:, iy][:, :, iz])
+    scale = 2.0 / 3.0 * s * P.vol0[0] * 2 * 2 / h
+    if null:
+        assert inner.max() < 1e-12 * scale
+    else:
+        np.testing.assert_allclose(inner, scale, rtol=1e-9)
+
+
 def test_volumetric_smoothing_on_in_2d_names_the_key_and_auto_is_nonlocal_3d_only():
     with pytest.raises(ConfigError, match="grid.volumetric_smoothing"):
         _cfg(["geometry.dimension=2", "grid.volumetric_smoothing='on'"])
