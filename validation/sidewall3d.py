@@ -37,14 +37,17 @@ runs join the tables with --extra LABEL=RUN:
     python validation/sidewall3d.py --prefix nl_ --times 0.5 1 2 3 5 \
         --extra walls_3d_slip_law=nlslip_walls3d_h1mm walls_3d_mu0.22=nlmu022_walls3d_h1mm
 
-The 20 s runs (the example's 3-D case and the default 2-D case at h = 1 mm):
+The 20 s runs (the example's 3-D case, 2 points per cell downslope and 3 across, and the default
+2-D case at h = 1 mm; nlslip20_walls3d_h1mm is the example as it was before 2026-12-07, with 2
+points per cell and axis, i.e. --set grid.particles_per_cell=2):
 
-    segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/nlslip20_walls3d_h1mm \
-        --set output.fields=false
+    segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/nl233_20s_walls3d_h1mm \
+        --set grid.threads=2 --set output.fields=false
     segmpm run --out validation/results/sidewall3d/nl_body2d20_h1mm --set grid.cell_size=0.001 \
         --set geometry.length=0.002 --set output.fields=false
     python validation/sidewall3d.py --prefix nl_ --body nl_body2d20_h1mm \
-        --walls nlslip20_walls3d_h1mm --tag nl20 --times 1 2 5 10 20   # summary_nl20.json
+        --walls nl233_20s_walls3d_h1mm --extra two_per_cell=nlslip20_walls3d_h1mm \
+        --tag nl20 --times 1 2 5 10 20   # summary_nl20.json
 
 (The --extra labels above: the wall law fitted against the DEM's wall slip speed, and the mobilised constant μ_w = 0.22,
 docs/calibration.md §2). Every 3-D run above uses the volumetric smoothing (grid.volumetric_smoothing
