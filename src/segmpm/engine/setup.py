@@ -27,7 +27,13 @@ from ..config import Config
 from ..materials import pack_material
 from ..materials.params import KIND_FEI2016_NGF, M_KIND
 from ..mpm.params import TRANSFER_AFLIP, TRANSFER_APIC, TRANSFER_FLIP
-from ..scenarios.builders import GHOST, _initial_strain, gravity_vector, wave_speed_floor
+from ..scenarios.builders import (
+    GHOST,
+    _initial_strain,
+    gravity_vector,
+    lattice,
+    wave_speed_floor,
+)
 from .records import (
     CLOCK,
     COL_M,
@@ -77,25 +83,6 @@ class EngineState:
         if self.nodes is not None:
             out["nodes"] = self.nodes
         return out
-
-
-def lattice(lo: tuple[float, ...], hi: tuple[float, ...], spacing: float | tuple[float, ...]):
-    """Cell-centred lattice filling the box [lo, hi] (2 or 3 axes) at about ``spacing`` (one
-    value, or one per axis); returns (x (D, N), volume per point). Points are ordered with y
-    slowest, so that they come sorted by height."""
-    axes = []
-    vol = 1.0
-    spacings = (spacing,) * len(lo) if isinstance(spacing, float | int) else spacing
-    for a, b, ds in zip(lo, hi, spacings, strict=True):
-        n = max(1, round((b - a) / ds))
-        s = (b - a) / n
-        axes.append(a + (np.arange(n) + 0.5) * s)
-        vol *= s
-    if len(axes) == 2:
-        Y, X = np.meshgrid(axes[1], axes[0], indexing="ij")
-        return np.stack([X.ravel(), Y.ravel()]), vol
-    Y, X, Z = np.meshgrid(axes[1], axes[0], axes[2], indexing="ij")
-    return np.stack([X.ravel(), Y.ravel(), Z.ravel()]), vol
 
 
 def _params(cfg: Config, dim: int, origin, nodes, periodic: bool) -> np.ndarray:

@@ -68,20 +68,24 @@ def gravity_vector(cfg: Config) -> tuple[float, float]:
     return cfg.time.gravity * math.sin(th), -cfg.time.gravity * math.cos(th)
 
 
-def lattice(
-    x_lo: float, x_hi: float, y_lo: float, y_hi: float, spacing: float | tuple[float, float]
-):
-    """Cell-centred lattice filling [x_lo, x_hi] × [y_lo, y_hi] at about ``spacing`` (one value
-    or (x, y)); returns (x (2, N), area per point)."""
-    dx, dy = (spacing, spacing) if isinstance(spacing, float | int) else spacing
-    nx = max(1, round((x_hi - x_lo) / dx))
-    ny = max(1, round((y_hi - y_lo) / dy))
-    sx = (x_hi - x_lo) / nx
-    sy = (y_hi - y_lo) / ny
-    xs = x_lo + (np.arange(nx) + 0.5) * sx
-    ys = y_lo + (np.arange(ny) + 0.5) * sy
-    X, Y = np.meshgrid(xs, ys, indexing="xy")  # row-major in y: points ordered by height
-    return np.stack([X.ravel(), Y.ravel()]), sx * sy
+def lattice(lo: tuple[float, ...], hi: tuple[float, ...], spacing: float | tuple[float, ...]):
+    """Cell-centred lattice filling the box [lo, hi] (2 or 3 axes) at about ``spacing`` (one
+    value, or one per axis); returns (x (D, N), volume per point). Points are ordered with y
+    slowest, so that they come sorted by height. The NumPy reference builders below and the
+    engine's set-up (``engine.setup``) both seed their points with it."""
+    axes = []
+    vol = 1.0
+    spacings = (spacing,) * len(lo) if isinstance(spacing, float | int) else spacing
+    for a, b, ds in zip(lo, hi, spacings, strict=True):
+        n = max(1, round((b - a) / ds))
+        s = (b - a) / n
+        axes.append(a + (np.arange(n) + 0.5) * s)
+        vol *= s
+    if len(axes) == 2:
+        Y, X = np.meshgrid(axes[1], axes[0], indexing="ij")
+        return np.stack([X.ravel(), Y.ravel()]), vol
+    Y, X, Z = np.meshgrid(axes[1], axes[0], axes[2], indexing="ij")
+    return np.stack([X.ravel(), Y.ravel(), Z.ravel()]), vol
 
 
 def grid_record(
@@ -196,7 +200,7 @@ def build_chute(cfg: Config) -> State:
     h = cfg.grid.cell_size
     nx = round(g.length / h)
     spacing = cfg.grid.point_spacing(2)
-    x, area = lattice(0.0, nx * h, 0.0, g.depth, spacing)
+    x, area = lattice((0.0, 0.0), (nx * h, g.depth), spacing)
     gp = grid_record(
         cfg, x0=0.0, nx=nx, y0=-GHOST * h, ny=_ny(g.depth * (1 + g.headroom), h),
         periodic=True, base=cfg.boundary.base,
@@ -215,7 +219,7 @@ def build_box(cfg: Config) -> State:
     nx = round(g.length / h)
     spacing = cfg.grid.point_spacing(2)
     bottom = g.headroom * g.depth
-    x, area = lattice(0.0, nx * h, bottom, bottom + g.depth, spacing)
+    x, area = lattice((0.0, bottom), (nx * h, bottom + g.depth), spacing)
     gp = grid_record(
         cfg, x0=0.0, nx=nx, y0=-GHOST * h, ny=_ny(g.depth * (1 + 2 * g.headroom), h),
         periodic=True, base="open", sidewall=False,
@@ -237,7 +241,7 @@ def build_bar(cfg: Config) -> State:
     h = cfg.grid.cell_size
     spacing = cfg.grid.point_spacing(2)
     L = g.length
-    x, area = lattice(0.0, L, 0.0, g.depth, spacing)
+    x, area = lattice((0.0, 0.0), (L, g.depth), spacing)
     nxc = int(math.ceil(L * (1 + g.headroom) / h))
     gp = grid_record(
         cfg, x0=-GHOST * h, nx=nxc + 2 * GHOST + 1, y0=-GHOST * h, ny=_ny(g.depth, h),
@@ -257,7 +261,7 @@ def build_collapse(cfg: Config) -> State:
     g = cfg.geometry
     h = cfg.grid.cell_size
     spacing = cfg.grid.point_spacing(2)
-    x, area = lattice(0.0, g.column_width, 0.0, g.column_height, spacing)
+    x, area = lattice((0.0, 0.0), (g.column_width, g.column_height), spacing)
     nxc = int(math.ceil(g.length / h))
     gp = grid_record(
         cfg, x0=-GHOST * h, nx=nxc + 2 * GHOST + 1, y0=-GHOST * h,
