@@ -49,7 +49,22 @@ points per cell and axis, i.e. --set grid.particles_per_cell=2):
         --walls nl233_20s_walls3d_h1mm --extra two_per_cell=nlslip20_walls3d_h1mm \
         --tag nl20 --times 1 2 5 10 20   # summary_nl20.json
 
-(The --extra labels above: the wall law fitted against the DEM's wall slip speed, and the mobilised constant μ_w = 0.22,
+The flow-only controls of the late 3-D slow-down (2026-12-08; segregation off, so the grain
+size stays the initial mixture's), at h = 1 mm to 10 s and at h = 11/14 mm to 6 s:
+
+    segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/nl233flow10_walls3d_h1mm \
+        --set segregation.model='"none"' --set time.end=10 --set output.fields=false \
+        --set output.profile_times=[0.0,0.5,1.0,2.0,3.0,4.0,5.0,6.0,7.0,8.0,10.0]
+    segmpm run examples/chute_nonlocal_3d.toml --out validation/results/sidewall3d/nl233flow6_h0.79mm \
+        --set grid.cell_size=0.0007857142857142857 --set geometry.length=0.0015714285714285715 \
+        --set segregation.model='"none"' --set time.end=6 --set output.fields=false \
+        --set output.profile_times=[0.0,0.5,1.0,2.0,3.0,4.0,5.0,6.0]
+    python validation/sidewall3d.py --prefix nl_ --body nl_body2d20_h1mm --walls nl233_20s_walls3d_h1mm \
+        --extra flow_only=nl233flow10_walls3d_h1mm --tag flow233 --times 1 2 5 10
+    python validation/sidewall3d.py --prefix nl_ --body nl_body2d20_h1mm --walls nl233flow10_walls3d_h1mm \
+        --extra fine_h0.79mm=nl233flow6_h0.79mm --tag flow233h --times 1 2 5
+
+(Only the times that every run compared has in its profiles are tabled.) (The --extra labels above: the wall law fitted against the DEM's wall slip speed, and the mobilised constant μ_w = 0.22,
 docs/calibration.md §2). Every 3-D run above uses the volumetric smoothing (grid.volumetric_smoothing
 = "auto", on in 3-D; docs/model.md §2) unless its config.toml says otherwise; the runs
 nosmooth_nlflow*_walls3d_h1mm are the flow-only (segregation.model = "none") diagnostics made

@@ -117,8 +117,12 @@ def summarise(run: pathlib.Path) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("runs", nargs="+", help="run directories under validation/results/sidewall3d")
-    ap.add_argument("--tag", default="", help="write circulation_TAG.json/png (VTK fields are "
-                    "not committed, so a later run is summarised apart from the earlier ones)")
+    ap.add_argument(
+        "--tag",
+        default="",
+        help="write circulation_TAG.json/png (VTK fields are "
+        "not committed, so a later run is summarised apart from the earlier ones)",
+    )
     args = ap.parse_args()
     stem = f"circulation_{args.tag}" if args.tag else "circulation"
     out = {}
