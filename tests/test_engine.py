@@ -548,6 +548,39 @@ def test_3d_collapse_quarter_column_is_symmetric():
     assert P.x[0].min() > 0.0 and P.x[2].min() > 0.0
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_solid_fraction_profile_does_not_depend_on_the_lattice(dim):
+    """The depth profile of the solid fraction f (and its cross-section map in 3-D) is a property
+    of the material, not of the points: a lattice of 3 points per 1 mm cell along y, whose
+    spacing does not divide the 0.5 mm bins, gives the f of 2 per cell, whose spacing does, in
+    every bin, and both hold the points' whole solid volume. (Binning each point at its centre
+    gave 0.8, 0.4, 0.8, ... at 3 per cell.) The tolerance is the geostatic strain of the initial
+    state, f/f_0 − 1 ≤ 1e-3 here: a slab of the reference spacing Δ = h/3 misplaces at most that
+    fraction of a point's volume."""
+    from conftest import make_sim
+
+    base = ["material.rheology='local'", "segregation.model='none'", f"geometry.dimension={dim}",
+            "grid.cell_size=0.001", "geometry.length=0.002", "geometry.depth=0.006"]  # fmt: skip
+    if dim == 3:
+        base += ["geometry.width=0.004", "geometry.mirror=true"]
+    out = {}
+    for ny in (2, 3):
+        sim = make_sim([*base, f"grid.particles_per_cell={[2] + [ny] * (dim - 1)}"])
+        P = sim.engine.points
+        f = sim.profiles()["solid_fraction"]
+        solid = float(np.sum(P.mass)) / sim.config.material.grain_density
+        width = float(sim.edges[1] - sim.edges[0])
+        assert np.nansum(f) * sim._area() * width == pytest.approx(solid, rel=1e-12)
+        out[ny] = (f, sim.cross_section()[2]["solid_fraction"] if dim == 3 else None)
+    (f2, c2), (f3, c3) = out[2], out[3]
+    filled = ~np.isnan(f2)
+    assert filled.sum() == 12 and np.array_equal(filled, ~np.isnan(f3))  # 6 mm in 0.5 mm bins
+    assert abs(np.nanmax(f2) / 0.6 - 1) < 1e-3  # the geostatic strain bounds the tolerance
+    np.testing.assert_allclose(f3[filled], f2[filled], rtol=1e-3, atol=0)
+    if dim == 3:
+        np.testing.assert_allclose(c3[filled], c2[filled], rtol=1e-3, atol=0)
+
+
 def test_3d_cli_run_writes_3d_snapshots_and_cross_sections(tmp_path):
     import json
     import subprocess

@@ -4,7 +4,10 @@
 Each material point contributes to the bin that holds its centre. Averages are weighted by the
 points' reference (solid) volume, except velocity (mass-weighted; equal here because the grain
 density is uniform). ``solid_fraction`` is the solid volume in the bin over the bin volume
-(L_x × bin thickness, per metre of depth). Empty bins are NaN.
+(L_x × bin thickness, per metre of depth; × the modelled width in 3-D), each point's solid
+volume spread over its slab [y − Δ/2, y + Δ/2] with Δ = h / n_y the points' lattice spacing
+along y, so that a lattice whose spacing does not divide the bin does not alias (until
+2026-12-08 each point's volume went to the bin of its centre). Empty bins are NaN.
 """
 
 from __future__ import annotations
